@@ -1,0 +1,188 @@
+"""Every factor: analytic Jacobians against central differences at random points with a
+non-zero residual, Jacobian shapes, and the same error with and without Jacobians."""
+
+import gtsam
+import numpy as np
+import pytest
+
+import factors
+from factors.hand_eye import robot_pose_noise_covariance
+
+
+def random_pose(rng, t_scale=0.5) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), rng.normal(size=3) * t_scale)
+
+
+def numeric_jacobians(error_fn, values, keys, eps=1e-6):
+    """Central differences of error_fn(values) along each key's tangent space."""
+    cols = []
+    for k in keys:
+        try:
+            pose = values.atPose3(k)
+            J = np.zeros((len(error_fn(values)), 6))
+            for i in range(6):
+                d = np.zeros(6)
+                d[i] = eps
+                vp, vm = gtsam.Values(values), gtsam.Values(values)
+                vp.update(k, pose.retract(d))
+                vm.update(k, pose.retract(-d))
+                J[:, i] = (error_fn(vp) - error_fn(vm)) / (2 * eps)
+        except RuntimeError:
+            x = values.atDouble(k)
+            vp, vm = gtsam.Values(values), gtsam.Values(values)
+            vp.update(k, x + eps)
+            vm.update(k, x - eps)
+            J = ((error_fn(vp) - error_fn(vm)) / (2 * eps))[:, None]
+        cols.append(J)
+    return cols
+
+
+def check_factor(error_fn_bound, factor, values, atol=1e-6, rtol=1e-5):
+    keys = list(factor.keys())
+    e0 = error_fn_bound(factor, values, None)
+    assert np.linalg.norm(e0) > 1e-3, "test point must have a non-zero residual"
+    jac = [None] * len(keys)
+    e1 = error_fn_bound(factor, values, jac)
+    np.testing.assert_array_equal(e0, e1)
+    numeric = numeric_jacobians(lambda v: error_fn_bound(factor, v, None), values, keys)
+    for i, (Ja, Jn) in enumerate(zip(jac, numeric)):
+        assert Ja.shape == Jn.shape, f"Jacobian {i}: shape {Ja.shape} != {Jn.shape}"
+        np.testing.assert_allclose(Ja, Jn, atol=atol, rtol=rtol, err_msg=f"Jacobian {i}")
+    # GTSAM's own linearisation agrees with the error (and does not crash on shapes).
+    gf = factor.linearize(values)
+    assert gf.rows() == len(e0)
+
+
+def pair_values(rng):
+    v = gtsam.Values()
+    v.insert(0, random_pose(rng))
+    v.insert(1, random_pose(rng))
+    v.insert(2, float(rng.uniform(0.5, 2.0)))
+    v.insert(3, float(rng.uniform(0.5, 2.0)))
+    return v
+
+
+def random_points(rng, n):
+    uv = rng.uniform([0, 0], [640, 480], size=(n, 2))
+    K = np.array([[500.0, 0, 320], [0, 510, 240], [0, 0, 1]])
+    rays = np.c_[uv, np.ones(n)] @ np.linalg.inv(K).T
+    depth = rng.uniform(0.5, 2.0, size=n)
+    return uv, K, rays * depth[:, None]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_match3d_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    n = 7
+    _, _, pa = random_points(rng, n)
+    _, _, pb = random_points(rng, n)
+    A = rng.normal(size=(n, 3, 3))
+    m = factors.Match3DMeasurement(pa, pb, A)
+    f = factors.make_match3d_factor(m, [0, 1, 2, 3])
+    check_factor(lambda fac, v, H: factors.match3d_error(m, fac, v, H), f, pair_values(rng))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_reprojection_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    n = 5
+    uv_a, K_a, pa = random_points(rng, n)
+    uv_b, K_b, pb = random_points(rng, n)
+    v = gtsam.Values()
+    # Keep both cameras looking at the points (positive depth in both) but with error.
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(2, float(rng.uniform(0.8, 1.2)))
+    v.insert(3, float(rng.uniform(0.8, 1.2)))
+    W = np.eye(2)[None] * rng.uniform(0.5, 2, size=(n, 1, 1))
+    m = factors.ReprojectionMeasurement(pa, pb, uv_a, uv_b, K_a, K_b, W)
+    f = factors.make_reprojection_factor(m, [0, 1, 2, 3])
+    check_factor(lambda fac, vals, H: factors.reprojection_error(m, fac, vals, H), f, v, atol=1e-4)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_robot_pose_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    E = random_pose(rng)
+    v = gtsam.Values()
+    v.insert(10, random_pose(rng, 0.1))
+    v.insert(11, random_pose(rng))
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
+    f = factors.make_robot_pose_factor(E, [10, 11], noise)
+    check_factor(lambda fac, vals, H: factors.robot_pose_error(E, fac, vals, H), f, v)
+
+
+def test_robot_pose_error_zero_at_consistent_poses():
+    rng = np.random.default_rng(5)
+    E, X = random_pose(rng), random_pose(rng, 0.1)
+    v = gtsam.Values()
+    v.insert(0, X)
+    v.insert(1, E.compose(X))
+    e = factors.robot_pose_error(E, factors.make_robot_pose_factor(E, [0, 1], gtsam.noiseModel.Unit.Create(6)), v, None)
+    np.testing.assert_allclose(e, 0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_relative_hand_eye_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    A = random_pose(rng)
+    v = gtsam.Values()
+    v.insert(0, random_pose(rng, 0.1))
+    v.insert(1, random_pose(rng))
+    v.insert(2, random_pose(rng))
+    v.insert(3, float(rng.uniform(0.5, 2)))
+    f = factors.make_relative_hand_eye_factor(A, [0, 1, 2, 3], gtsam.noiseModel.Unit.Create(6))
+    check_factor(lambda fac, vals, H: factors.relative_hand_eye_error(A, fac, vals, H), f, v)
+
+
+def test_relative_hand_eye_zero_when_ax_equals_xb():
+    rng = np.random.default_rng(3)
+    X, E1, E2 = random_pose(rng, 0.1), random_pose(rng), random_pose(rng)
+    lam = 0.37
+    v = gtsam.Values()
+    v.insert(0, X)
+    # visual poses in reconstruction units: metric translation / lambda
+    for k, E in ((1, E1), (2, E2)):
+        C = E.compose(X)
+        v.insert(k, gtsam.Pose3(C.rotation(), C.translation() / lam))
+    v.insert(3, lam)
+    f = factors.make_relative_hand_eye_factor(E1.between(E2), [0, 1, 2, 3], gtsam.noiseModel.Unit.Create(6))
+    np.testing.assert_allclose(factors.relative_hand_eye_error(E1.between(E2), f, v, None), 0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rigidity_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    v = gtsam.Values()
+    for k in range(4):
+        v.insert(k, random_pose(rng))
+    f = factors.make_rigidity_factor([0, 1, 2, 3], gtsam.noiseModel.Unit.Create(6))
+    check_factor(lambda fac, vals, H: factors.rigidity_error(None, fac, vals, H), f, v)
+
+
+def test_scale_gauge_jacobians():
+    rng = np.random.default_rng(0)
+    v = gtsam.Values()
+    for k in range(5):
+        v.insert(k, float(rng.uniform(0.5, 2)))
+    f = factors.make_scale_gauge_factor(list(range(5)), gtsam.noiseModel.Unit.Create(1))
+    check_factor(lambda fac, vals, H: factors.scale_gauge_error(None, fac, vals, H), f, v)
+
+
+def test_robot_noise_covariance_matches_monte_carlo():
+    """The propagated 6x6 covariance predicts the spread of the error under flange noise."""
+    rng = np.random.default_rng(0)
+    X = random_pose(rng, 0.1)
+    E = random_pose(rng)
+    sr, st = np.deg2rad(0.05), 0.001
+    cov = robot_pose_noise_covariance(X, sr, st)
+    v = gtsam.Values()
+    v.insert(0, X)
+    v.insert(1, E.compose(X))
+    errs = []
+    for _ in range(4000):
+        E_noisy = E.compose(gtsam.Pose3.Expmap(np.r_[rng.normal(size=3) * sr, rng.normal(size=3) * st]))
+        f = factors.make_robot_pose_factor(E_noisy, [0, 1], gtsam.noiseModel.Unit.Create(6))
+        errs.append(factors.robot_pose_error(E_noisy, f, v, None))
+    emp = np.cov(np.array(errs).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(cov)), rtol=0.08)
