@@ -3,11 +3,13 @@
 For each match p of the view pair (a, b) the two predicted depths are lifted to
 3D points in their cameras,
 
-    P_a = s_a * d_a(p) * ray_a(p),      P_b = s_b * d_b(p) * ray_b(p),
+    P_a = s_a * (1 + phi_a(p) . c_a) * d_a(p) * ray_a(p),     (likewise P_b)
 
-with ``ray = K^-1 [u, v, 1]`` (z = 1), ``d`` the frontend's depth and ``s`` the
-view's depth scale (metres per frontend unit). The residual compares them in
-camera a's frame and is normalised by ``s_a``:
+with ``ray = K^-1 [u, v, 1]`` (z = 1), ``d`` the frontend's depth, ``s`` the view's
+depth scale (metres per frontend unit) and ``c`` an optional low-dimensional
+smooth depth correction on the basis ``phi`` (normalised image coordinates; the
+frontend's depth errors are smooth, and a scale alone cannot absorb them). The
+residual compares the two points in camera a's frame, normalised by ``s_a``:
 
     e_p = (P_a - a_T_b * P_b) / s_a,      a_T_b = base_T_a^-1 * base_T_b,
     r_p = W_p e_p                                              (3 rows per match)
@@ -19,7 +21,8 @@ fixed (3, 3) square-root information in the unit of view a's frontend depth:
 per-point covariance from pixel and depth noise, confidence and robust weight,
 built by the caller. Error dimension: 3N, dimensionless after whitening.
 
-Keys: ``[base_T_a (Pose3), base_T_b (Pose3), s_a (double), s_b (double)]``.
+Keys: ``[base_T_a, base_T_b (Pose3), s_a, s_b (double)]`` and, when the
+measurement has a basis, ``[c_a, c_b (Vector K)]``.
 """
 
 from dataclasses import dataclass
@@ -38,53 +41,80 @@ class Match3DMeasurement:
     ray_depth_a: np.ndarray  # (N, 3) d_a * ray_a: point in cam a at unit depth scale
     ray_depth_b: np.ndarray  # (N, 3) d_b * ray_b
     sqrt_info: np.ndarray  # (N, 3, 3) W_p, applied to e_p
+    basis_a: np.ndarray | None = None  # (N, K) depth-correction basis at the matches in a
+    basis_b: np.ndarray | None = None  # (N, K)
 
     def __post_init__(self):
         n = len(self.ray_depth_a)
         assert self.ray_depth_a.shape == (n, 3) and self.ray_depth_b.shape == (n, 3)
         assert self.sqrt_info.shape == (n, 3, 3)
+        assert (self.basis_a is None) == (self.basis_b is None)
 
     @property
     def dim(self) -> int:
         return 3 * len(self.ray_depth_a)
 
 
+def _corrected(m: Match3DMeasurement, c_a, c_b):
+    if m.basis_a is None:
+        return m.ray_depth_a, m.ray_depth_b
+    return m.ray_depth_a * (1 + m.basis_a @ c_a)[:, None], m.ray_depth_b * (1 + m.basis_b @ c_b)[:, None]
+
+
 def match3d_residuals(m: Match3DMeasurement, base_T_a: gtsam.Pose3, base_T_b: gtsam.Pose3,
-                      s_a: float, s_b: float) -> np.ndarray:
+                      s_a: float, s_b: float, c_a=None, c_b=None) -> np.ndarray:
     """Unwhitened per-match residuals e_p (N, 3) in view a's frontend-depth unit."""
+    g_a, g_b = _corrected(m, c_a, c_b)
     a_T_b = base_T_a.between(base_T_b)
-    Q = (s_b * m.ray_depth_b) @ a_T_b.rotation().matrix().T + a_T_b.translation()
-    return m.ray_depth_a - Q / s_a
+    Q = (s_b * g_b) @ a_T_b.rotation().matrix().T + a_T_b.translation()
+    return g_a - Q / s_a
 
 
 def match3d_error(m: Match3DMeasurement, this: gtsam.CustomFactor, values: gtsam.Values,
                   jacobians) -> np.ndarray:
-    k_a, k_b, k_sa, k_sb = this.keys()
-    base_T_a, base_T_b = values.atPose3(k_a), values.atPose3(k_b)
-    s_a, s_b = values.atDouble(k_sa), values.atDouble(k_sb)
+    keys = this.keys()
+    base_T_a, base_T_b = values.atPose3(keys[0]), values.atPose3(keys[1])
+    s_a, s_b = values.atDouble(keys[2]), values.atDouble(keys[3])
+    c_a = values.atVector(keys[4]) if len(keys) == 6 else None
+    c_b = values.atVector(keys[5]) if len(keys) == 6 else None
+    g_a, g_b = _corrected(m, c_a, c_b)
     a_T_b = base_T_a.between(base_T_b)
     R_ab = a_T_b.rotation().matrix()
-    P_b = s_b * m.ray_depth_b
+    P_b = s_b * g_b
     Q = P_b @ R_ab.T + a_T_b.translation()
-    e = m.ray_depth_a - Q / s_a
+    e = g_a - Q / s_a
     if jacobians is not None:
         n = len(Q)
+        W = m.sqrt_info
         eye = np.broadcast_to(np.eye(3), (n, 3, 3))
         # d Q / d xi_a = [[Q]x, -I]  ->  d e / d xi_a = [-[Q]x, I] / s_a
         J_a = np.concatenate([-skew(Q), eye], axis=2) / s_a
         # d Q / d xi_b = [-R_ab [P_b]x, R_ab]  ->  d e / d xi_b = -(...) / s_a
         J_b = np.concatenate([R_ab @ skew(P_b), -np.broadcast_to(R_ab, (n, 3, 3))], axis=2) / s_a
-        J_sa = (Q / s_a**2)[:, :, None]
-        J_sb = (-(m.ray_depth_b @ R_ab.T) / s_a)[:, :, None]
-        W = m.sqrt_info
         jacobians[0] = whiten_rows(W, J_a)
         jacobians[1] = whiten_rows(W, J_b)
-        jacobians[2] = whiten_rows(W, J_sa)
-        jacobians[3] = whiten_rows(W, J_sb)
+        jacobians[2] = whiten_rows(W, (Q / s_a**2)[:, :, None])
+        jacobians[3] = whiten_rows(W, (-(g_b @ R_ab.T) / s_a)[:, :, None])
+        if len(keys) == 6:
+            # d g_a / d c_a = pd_a phi_a^T;  d e / d c_b = -(s_b / s_a) R_ab pd_b phi_b^T
+            jacobians[4] = whiten_rows(W, np.einsum("ni,nk->nik", m.ray_depth_a, m.basis_a))
+            jacobians[5] = whiten_rows(W, np.einsum("ni,nk->nik", -(s_b / s_a) * (m.ray_depth_b @ R_ab.T), m.basis_b))
     return np.einsum("nij,nj->ni", m.sqrt_info, e).reshape(-1)
 
 
 def make_match3d_factor(m: Match3DMeasurement, keys, noise=None) -> gtsam.CustomFactor:
     """Bind a view pair's matches into one factor (whitening is already in ``m.sqrt_info``)."""
+    assert len(keys) == (6 if m.basis_a is not None else 4)
     noise = noise or gtsam.noiseModel.Unit.Create(m.dim)
     return gtsam.CustomFactor(noise, list(keys), partial(match3d_error, m))
+
+
+def depth_correction_basis(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Quadratic basis (N, 5) on normalised image coordinates x, y in [-1, 1]:
+    ``[x, y, x^2, xy, y^2]`` (the constant term is the depth scale itself)."""
+    x = 2 * uv[:, 0] / (width - 1) - 1
+    y = 2 * uv[:, 1] / (height - 1) - 1
+    return np.stack([x, y, x * x, x * y, y * y], axis=1)
+
+
+DEPTH_CORRECTION_DIM = 5

@@ -28,11 +28,19 @@ def numeric_jacobians(error_fn, values, keys, eps=1e-6):
                 vm.update(k, pose.retract(-d))
                 J[:, i] = (error_fn(vp) - error_fn(vm)) / (2 * eps)
         except RuntimeError:
-            x = values.atDouble(k)
-            vp, vm = gtsam.Values(values), gtsam.Values(values)
-            vp.update(k, x + eps)
-            vm.update(k, x - eps)
-            J = ((error_fn(vp) - error_fn(vm)) / (2 * eps))[:, None]
+            try:
+                x = np.atleast_1d(values.atDouble(k))
+                scalar = True
+            except RuntimeError:
+                x, scalar = values.atVector(k), False
+            J = np.zeros((len(error_fn(values)), len(x)))
+            for i in range(len(x)):
+                d = np.zeros(len(x))
+                d[i] = eps
+                vp, vm = gtsam.Values(values), gtsam.Values(values)
+                vp.update(k, float((x + d)[0]) if scalar else x + d)
+                vm.update(k, float((x - d)[0]) if scalar else x - d)
+                J[:, i] = (error_fn(vp) - error_fn(vm)) / (2 * eps)
         cols.append(J)
     return cols
 
@@ -186,3 +194,20 @@ def test_robot_noise_covariance_matches_monte_carlo():
         errs.append(factors.robot_pose_error(E_noisy, f, v, None))
     emp = np.cov(np.array(errs).T)
     np.testing.assert_allclose(np.sqrt(np.diag(emp)), np.sqrt(np.diag(cov)), rtol=0.08)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_match3d_with_depth_correction_jacobians(seed):
+    from factors.match3d import depth_correction_basis
+
+    rng = np.random.default_rng(seed)
+    n = 6
+    uv_a, _, pa = random_points(rng, n)
+    uv_b, _, pb = random_points(rng, n)
+    m = factors.Match3DMeasurement(pa, pb, rng.normal(size=(n, 3, 3)),
+                                   depth_correction_basis(uv_a, 640, 480), depth_correction_basis(uv_b, 640, 480))
+    v = pair_values(rng)
+    v.insert(4, rng.normal(size=5) * 0.05)
+    v.insert(5, rng.normal(size=5) * 0.05)
+    f = factors.make_match3d_factor(m, [0, 1, 2, 3, 4, 5])
+    check_factor(lambda fac, vals, H: factors.match3d_error(m, fac, vals, H), f, v)

@@ -1,0 +1,287 @@
+"""Reading and writing ``calib3r-dataset/1`` (dataset.yaml, robot_poses.csv, images, depth).
+
+Every check happens here, at the boundary: a violation raises :class:`InputError`
+naming the file, the row or key, and what is wrong. Translations are converted to
+metres on load, so nothing downstream sees ``unit``.
+"""
+
+import csv
+import logging
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import yaml
+
+from calib3r_graph.errors import InputError
+
+log = logging.getLogger(__name__)
+
+FORMAT = "calib3r-dataset/1"
+CAMERA_MODELS = {"PINHOLE": 4, "OPENCV": 8}
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+ROBOT_COLUMNS = ["frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
+UNIT_TO_METRES = {"m": 1.0, "mm": 1e-3}
+# Industrial arms reach at most a few metres; a flange farther than this from the base
+# means the translations are in a smaller unit than declared.
+MAX_PLAUSIBLE_REACH_M = 20.0
+
+
+@dataclass(frozen=True)
+class Camera:
+    name: str
+    model: str
+    width: int
+    height: int
+    params: tuple
+    depth_scale: float | None = None
+
+    @property
+    def K(self) -> np.ndarray:
+        fx, fy, cx, cy = self.params[:4]
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def dist(self) -> np.ndarray:
+        """OpenCV distortion coefficients [k1, k2, p1, p2] (zeros for PINHOLE)."""
+        return np.array(self.params[4:8] if self.model == "OPENCV" else [0.0] * 4)
+
+
+@dataclass
+class Dataset:
+    root: Path
+    cameras: dict  # name -> Camera, in dataset.yaml order
+    base_T_ee: dict  # frame id -> gtsam.Pose3 (metres)
+    pattern: dict | None = None
+    robot_unit: str = "m"
+    meta: dict = field(default_factory=dict)  # the parsed dataset.yaml
+
+    @property
+    def frames(self) -> list:
+        return list(self.base_T_ee)
+
+    def image_path(self, camera: str, frame: str) -> Path | None:
+        for suffix in IMAGE_SUFFIXES:
+            p = self.root / "images" / camera / f"{frame}{suffix}"
+            if p.is_file():
+                return p
+        return None
+
+    def depth_path(self, camera: str, frame: str) -> Path | None:
+        p = self.root / "depth" / camera / f"{frame}.png"
+        return p if p.is_file() else None
+
+    def image_frames(self, camera: str) -> list:
+        d = self.root / "images" / camera
+        if not d.is_dir():
+            return []
+        return sorted(p.stem for p in d.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+    def has_depth(self) -> bool:
+        return any(self.depth_path(c, f) for c in self.cameras for f in self.frames[:3])
+
+
+def _require(mapping, key, path, where):
+    if not isinstance(mapping, dict) or key not in mapping:
+        raise InputError(path, f"missing key '{key}'", where)
+    return mapping[key]
+
+
+def _parse_camera(entry, path, index) -> Camera:
+    where = f"cameras[{index}]"
+    name = str(_require(entry, "name", path, where))
+    where = f"cameras[{index}] ({name})"
+    model = str(_require(entry, "model", path, where))
+    if model not in CAMERA_MODELS:
+        raise InputError(path, f"unknown camera model '{model}' (expected one of {sorted(CAMERA_MODELS)})", where)
+    try:
+        width, height = int(_require(entry, "width", path, where)), int(_require(entry, "height", path, where))
+        params = tuple(float(p) for p in _require(entry, "params", path, where))
+    except (TypeError, ValueError) as e:
+        raise InputError(path, f"width, height and params must be numbers ({e})", where) from None
+    if len(params) != CAMERA_MODELS[model]:
+        raise InputError(path, f"{model} needs {CAMERA_MODELS[model]} params, got {len(params)}", where)
+    if width <= 0 or height <= 0 or params[0] <= 0 or params[1] <= 0 or not all(map(math.isfinite, params)):
+        raise InputError(path, "width, height, fx and fy must be positive and params finite", where)
+    depth_scale = entry.get("depth_scale")
+    if depth_scale is not None:
+        depth_scale = float(depth_scale)
+        if not depth_scale > 0:
+            raise InputError(path, "depth_scale must be positive", where)
+    if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
+        raise InputError(path, f"camera name '{name}' must be letters, digits, '_', '.' or '-'", where)
+    return Camera(name, model, width, height, params, depth_scale)
+
+
+def load_dataset(root, skip_missing: bool = False) -> Dataset:
+    """Load and validate ``root/dataset.yaml`` and the robot poses it names."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "no such dataset directory")
+    path = root / "dataset.yaml"
+    if not path.is_file():
+        raise InputError(path, "missing (every dataset needs a dataset.yaml)")
+    try:
+        meta = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise InputError(path, f"not valid YAML ({first})") from None
+    if not isinstance(meta, dict):
+        raise InputError(path, "must be a YAML mapping")
+    fmt = _require(meta, "format", path, None)
+    if fmt != FORMAT:
+        raise InputError(path, f"unknown format '{fmt}' (this version reads '{FORMAT}')", "format")
+    robot = _require(meta, "robot", path, None)
+    poses_name = _require(robot, "poses", path, "robot")
+    unit = str(robot.get("unit", "m"))
+    if unit not in UNIT_TO_METRES:
+        raise InputError(path, f"unknown unit '{unit}' (expected m or mm)", "robot.unit")
+    cams = _require(meta, "cameras", path, None)
+    if not isinstance(cams, list) or not cams:
+        raise InputError(path, "must list at least one camera", "cameras")
+    cameras = {}
+    for i, entry in enumerate(cams):
+        cam = _parse_camera(entry, path, i)
+        if cam.name in cameras:
+            raise InputError(path, f"camera name '{cam.name}' appears twice", f"cameras[{i}]")
+        cameras[cam.name] = cam
+    pattern = meta.get("pattern")
+    if pattern is not None:
+        _validate_pattern(pattern, path)
+    base_T_ee = read_robot_poses(root / str(poses_name), unit)
+    ds = Dataset(root, cameras, base_T_ee, pattern, unit, meta)
+    _check_frames_have_poses(ds, skip_missing)
+    return ds
+
+
+def _validate_pattern(pattern, path):
+    if pattern.get("type") != "checkerboard":
+        raise InputError(path, f"unsupported pattern type '{pattern.get('type')}'", "pattern.type")
+    corners = pattern.get("inner_corners")
+    if not (isinstance(corners, list) and len(corners) == 2 and all(isinstance(c, int) and c >= 2 for c in corners)):
+        raise InputError(path, "inner_corners must be [columns, rows], integers >= 2", "pattern.inner_corners")
+    size = pattern.get("square_size")
+    if not isinstance(size, (int, float)) or not size > 0:
+        raise InputError(path, "square_size must be a positive number of metres", "pattern.square_size")
+
+
+def read_robot_poses(path: Path, unit: str = "m") -> dict:
+    """``robot_poses.csv`` -> {frame: base_T_ee Pose3 in metres}, strictly validated."""
+    if not path.is_file():
+        raise InputError(path, "missing (named by dataset.yaml robot.poses)")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise InputError(path, "not a text file") from None
+    rows = list(csv.reader(text.splitlines()))
+    if not rows or [c.strip() for c in rows[0]] != ROBOT_COLUMNS:
+        raise InputError(path, f"header must be '{','.join(ROBOT_COLUMNS)}'", "row 1")
+    scale = UNIT_TO_METRES[unit]
+    poses = {}
+    for line_no, row in enumerate(rows[1:], start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        where = f"row {line_no}"
+        if len(row) != len(ROBOT_COLUMNS):
+            raise InputError(path, f"expected {len(ROBOT_COLUMNS)} columns, got {len(row)}", where)
+        frame = row[0].strip()
+        where = f"row {line_no} (frame {frame})"
+        if not frame:
+            raise InputError(path, "empty frame id", where)
+        if frame in poses:
+            raise InputError(path, "duplicated frame", where)
+        try:
+            x, y, z, qx, qy, qz, qw = (float(c) for c in row[1:])
+        except ValueError:
+            raise InputError(path, "pose values must be numbers", where) from None
+        values = (x, y, z, qx, qy, qz, qw)
+        if not all(math.isfinite(v) for v in values):
+            raise InputError(path, "NaN or Inf in the pose", where)
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if abs(norm - 1.0) > 1e-3:
+            raise InputError(path, f"quaternion is not unit (norm {norm:.6g})", where)
+        rot = gtsam.Rot3.Quaternion(qw / norm, qx / norm, qy / norm, qz / norm)
+        poses[frame] = gtsam.Pose3(rot, np.array([x, y, z]) * scale)
+    if not poses:
+        raise InputError(path, "no poses")
+    reach = max(np.linalg.norm(p.translation()) for p in poses.values())
+    if reach > MAX_PLAUSIBLE_REACH_M:
+        raise InputError(path, f"flange is {reach:.0f} m from the base: translations look like millimetres "
+                               f"declared as '{unit}' (set robot.unit: mm in dataset.yaml)")
+    spread = np.ptp(np.array([p.translation() for p in poses.values()]), axis=0).max() if len(poses) > 1 else 1.0
+    if len(poses) > 2 and spread < 1e-3 and unit == "mm":
+        raise InputError(path, "the flange moves less than 1 mm over all frames: translations look like "
+                               "metres declared as 'mm' (set robot.unit: m in dataset.yaml)")
+    return poses
+
+
+def _check_frames_have_poses(ds: Dataset, skip_missing: bool):
+    """Every frame with images must have a robot pose (or be skipped with a warning)."""
+    for cam in ds.cameras:
+        for frame in ds.image_frames(cam):
+            if frame not in ds.base_T_ee:
+                path = ds.image_path(cam, frame)
+                if not skip_missing:
+                    raise InputError(path, f"frame {frame} has no row in robot_poses.csv "
+                                           "(use --skip-missing to drop such frames)")
+                log.warning("%s: frame %s has no robot pose; skipped", path, frame)
+
+
+def pose_to_row(frame: str, pose: gtsam.Pose3, scale: float = 1.0) -> list:
+    q = pose.rotation().toQuaternion()
+    t = pose.translation() * scale
+    return [frame, *(f"{v:.9f}" for v in t), *(f"{v:.12f}" for v in (q.x(), q.y(), q.z(), q.w()))]
+
+
+def write_robot_poses(path: Path, base_T_ee: dict, unit: str = "m"):
+    from calib3r_graph.output import atomic_write_text
+
+    scale = 1.0 / UNIT_TO_METRES[unit]
+    lines = [",".join(ROBOT_COLUMNS)] + [",".join(pose_to_row(f, p, scale)) for f, p in base_T_ee.items()]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def camera_to_yaml(cam: Camera) -> dict:
+    d = {"name": cam.name, "model": cam.model, "width": cam.width, "height": cam.height,
+         "params": [float(p) for p in cam.params]}
+    if cam.depth_scale is not None:
+        d["depth_scale"] = cam.depth_scale
+    return d
+
+
+def write_dataset_yaml(root: Path, cameras, unit="m", pattern=None, poses_name="robot_poses.csv", extra=None):
+    from calib3r_graph.output import atomic_write_text
+
+    meta = {"format": FORMAT, "robot": {"poses": poses_name, "unit": unit},
+            "cameras": [camera_to_yaml(c) for c in cameras]}
+    if pattern:
+        meta["pattern"] = pattern
+    meta.update(extra or {})
+    atomic_write_text(Path(root) / "dataset.yaml", yaml.safe_dump(meta, sort_keys=False))
+
+
+def pose_from_dict(d) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(d["qw"], d["qx"], d["qy"], d["qz"]), np.array([d["x"], d["y"], d["z"]]))
+
+
+def pose_to_dict(pose: gtsam.Pose3) -> dict:
+    q = pose.rotation().toQuaternion()
+    t = pose.translation()
+    return {"x": float(t[0]), "y": float(t[1]), "z": float(t[2]),
+            "qx": float(q.x()), "qy": float(q.y()), "qz": float(q.z()), "qw": float(q.w())}
+
+
+def load_ground_truth(root) -> dict | None:
+    """``ground_truth.yaml`` -> {"hand_eye": {camera: ee_T_cam Pose3}, ...}; None if absent."""
+    path = Path(root) / "ground_truth.yaml"
+    if not path.is_file():
+        return None
+    try:
+        gt = yaml.safe_load(path.read_text())
+        gt["hand_eye"] = {c: pose_from_dict(d) for c, d in gt["hand_eye"].items()}
+    except (yaml.YAMLError, KeyError, TypeError) as e:
+        raise InputError(path, f"invalid ground truth ({e})") from None
+    return gt

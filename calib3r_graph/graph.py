@@ -1,0 +1,178 @@
+"""Assembly of the one joint factor graph.
+
+Variables (GTSAM keys):
+    x<i>  base_T_cam of view i (Pose3, metres, robot base frame)
+    s<i>  depth scale of view i (double: metres per frontend depth unit)
+    c<i>  smooth depth correction of view i (Vector 5, relative; see factors.match3d)
+    e<j>  ee_T_cam of camera j (Pose3)
+    l<j>  metric scale of camera j (double: geometric mean of its views' depth scales)
+
+Factors: one 3D match factor per view pair (optionally one reprojection factor per
+pair), one robot pose factor per frame on its reference view (the first camera with
+a view at that frame), one rigidity factor per other view of that frame, and one
+scale-gauge factor per camera.
+
+Gauge: the scene factors are invariant to a similarity transform of the visual
+world. We fix that freedom on purpose through the robot: every connected component
+of the co-visibility graph has views at two or more robot poses (others are left
+out by the initialiser), and their robot pose factors tie the component's pose and
+scale to the metric robot base frame. No view is anchored by an arbitrary prior, so
+the covariance of ee_T_cam does not depend on any choice of anchor view.
+"""
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+import factors
+from factors.hand_eye import robot_pose_noise_covariance
+from factors.match3d import DEPTH_CORRECTION_DIM, Match3DMeasurement, match3d_residuals
+from calib3r_graph.predictions import split_view_id
+
+
+@dataclass
+class NoiseOptions:
+    pixel_sigma_px: float = 1.0  # match noise on the frontend's grid
+    depth_sigma_rel: float = 0.01  # relative depth noise of the frontend
+    robot_sigma_mm: float = 0.2  # flange position noise of the robot
+    robot_sigma_deg: float = 0.02  # flange orientation noise of the robot
+    rig_sigma_mm: float = 0.02  # non-rigidity / desynchronisation between rig cameras
+    rig_sigma_deg: float = 0.002
+    scale_gauge_sigma: float = 1e-6  # tight: lambda_j is a defined quantity, not a measurement
+    depth_correction_sigma: float = 0.02  # prior on each relative depth-correction coefficient (0 = off)
+
+
+class Keys:
+    def __init__(self, views, cameras):
+        self.view_index = {v: i for i, v in enumerate(views)}
+        self.cameras = list(cameras)
+
+    def pose(self, v):
+        return gtsam.symbol("x", self.view_index[v])
+
+    def scale(self, v):
+        return gtsam.symbol("s", self.view_index[v])
+
+    def correction(self, v):
+        return gtsam.symbol("c", self.view_index[v])
+
+    def hand_eye(self, cam):
+        return gtsam.symbol("e", self.cameras.index(cam))
+
+    def metric(self, cam):
+        return gtsam.symbol("l", self.cameras.index(cam))
+
+
+def point_sqrt_info(obs, K_a, K_b, a_T_b: gtsam.Pose3, scale_ratio_b_to_a: float, noise: NoiseOptions,
+                    weights: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) square-root information of e_p = P_a - a_T_b P_b (view a's unit depth scale).
+
+    Each point's covariance comes from pixel noise (lateral, sigma_px * depth / f) and
+    relative depth noise (along the viewing ray); view b's is rotated into a's frame and
+    rescaled to a's units. ``weights`` (confidence x robust weight) scale the information.
+    """
+    def cov(pts, K):
+        z = pts[:, 2]
+        lat = (noise.pixel_sigma_px * z)[:, None] ** 2 * np.array([1 / K[0, 0] ** 2, 1 / K[1, 1] ** 2, 0.0])
+        C = noise.depth_sigma_rel**2 * np.einsum("ni,nj->nij", pts, pts)
+        C[:, [0, 1, 2], [0, 1, 2]] += lat
+        return C
+
+    R = a_T_b.rotation().matrix()
+    C = cov(obs.pts_a, K_a) + scale_ratio_b_to_a**2 * (R @ cov(obs.pts_b, K_b) @ R.T)
+    L = np.linalg.cholesky(np.linalg.inv(C))  # L L^T = C^-1
+    return np.swapaxes(L, 1, 2) * np.sqrt(weights)[:, None, None]
+
+
+def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise, reprojection=False):
+    """One 3D match factor (and optionally one reprojection factor) per view pair."""
+    for o, w in zip(observations, weights):
+        keep = w > 0
+        if keep.sum() < 3:
+            continue
+        o = o.subset(keep)
+        w = w[keep]
+        T_a, T_b = values_init.atPose3(keys.pose(o.view_a)), values_init.atPose3(keys.pose(o.view_b))
+        s_a, s_b = values_init.atDouble(keys.scale(o.view_a)), values_init.atDouble(keys.scale(o.view_b))
+        W = point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b], T_a.between(T_b), s_b / s_a, noise, w)
+        k = [keys.pose(o.view_a), keys.pose(o.view_b), keys.scale(o.view_a), keys.scale(o.view_b)]
+        if noise.depth_correction_sigma > 0:
+            m = factors.Match3DMeasurement(o.pts_a, o.pts_b, W, o.basis_a, o.basis_b)
+            k3d = k + [keys.correction(o.view_a), keys.correction(o.view_b)]
+        else:
+            m, k3d = factors.Match3DMeasurement(o.pts_a, o.pts_b, W), k
+        graph.add(factors.make_match3d_factor(m, k3d))
+        if reprojection:
+            W2 = np.eye(2)[None] * (np.sqrt(w) / noise.pixel_sigma_px)[:, None, None]
+            m = factors.ReprojectionMeasurement(o.pts_a, o.pts_b, o.uv_a, o.uv_b, Ks[o.view_a], Ks[o.view_b], W2)
+            graph.add(factors.make_reprojection_factor(m, k))
+
+
+def add_robot_factors(graph, keys, views, base_T_ee, ee_T_cam_init, noise: NoiseOptions):
+    """Robot pose factor on each frame's reference view; rigidity for the frame's other views."""
+    by_frame = {}
+    for v in views:
+        cam, frame = split_view_id(v)
+        by_frame.setdefault(frame, []).append(v)
+    rig_noise = gtsam.noiseModel.Diagonal.Sigmas(np.r_[[np.radians(noise.rig_sigma_deg)] * 3,
+                                                       [noise.rig_sigma_mm * 1e-3] * 3])
+    for frame, vs in by_frame.items():
+        vs = sorted(vs, key=lambda v: keys.cameras.index(split_view_id(v)[0]))
+        ref, ref_cam = vs[0], split_view_id(vs[0])[0]
+        cov = robot_pose_noise_covariance(ee_T_cam_init[ref_cam], np.radians(noise.robot_sigma_deg),
+                                          noise.robot_sigma_mm * 1e-3)
+        graph.add(factors.make_robot_pose_factor(base_T_ee[frame], [keys.hand_eye(ref_cam), keys.pose(ref)],
+                                                 gtsam.noiseModel.Gaussian.Covariance(cov)))
+        for v in vs[1:]:
+            cam = split_view_id(v)[0]
+            graph.add(factors.make_rigidity_factor([keys.hand_eye(ref_cam), keys.hand_eye(cam),
+                                                    keys.pose(ref), keys.pose(v)], rig_noise))
+
+
+def add_scale_gauge_factors(graph, keys, views, noise: NoiseOptions):
+    by_cam = {}
+    for v in views:
+        by_cam.setdefault(split_view_id(v)[0], []).append(v)
+    for cam, vs in by_cam.items():
+        graph.add(factors.make_scale_gauge_factor([keys.metric(cam)] + [keys.scale(v) for v in vs],
+                                                  gtsam.noiseModel.Isotropic.Sigma(1, noise.scale_gauge_sigma)))
+
+
+def add_depth_correction_priors(graph, keys, views, noise: NoiseOptions):
+    """Zero-mean prior on each view's depth correction: smooth errors of a few percent."""
+    if noise.depth_correction_sigma <= 0:
+        return
+    model = gtsam.noiseModel.Isotropic.Sigma(DEPTH_CORRECTION_DIM, noise.depth_correction_sigma)
+    for v in views:
+        graph.add(gtsam.PriorFactorVector(keys.correction(v), np.zeros(DEPTH_CORRECTION_DIM), model))
+
+
+def initial_values(keys, init, with_correction=True) -> gtsam.Values:
+    values = gtsam.Values()
+    for v, T in init.base_T_cam.items():
+        values.insert(keys.pose(v), T)
+        values.insert(keys.scale(v), float(init.depth_scale[v]))
+        if with_correction:
+            values.insert(keys.correction(v), np.zeros(DEPTH_CORRECTION_DIM))
+    for cam, X in init.ee_T_cam.items():
+        values.insert(keys.hand_eye(cam), X)
+        scales = [init.depth_scale[v] for v in init.base_T_cam if split_view_id(v)[0] == cam]
+        values.insert(keys.metric(cam), float(np.exp(np.mean(np.log(scales)))))
+    return values
+
+
+def depth_correction(values, keys, v):
+    k = keys.correction(v)
+    return values.atVector(k) if values.exists(k) else np.zeros(DEPTH_CORRECTION_DIM)
+
+
+def match_residuals(observations, values, keys) -> list:
+    """Unwhitened per-match residuals e_p (N, 3) of every pair at ``values``."""
+    out = []
+    for o in observations:
+        m = Match3DMeasurement(o.pts_a, o.pts_b, np.zeros((len(o), 3, 3)), o.basis_a, o.basis_b)
+        out.append(match3d_residuals(m, values.atPose3(keys.pose(o.view_a)), values.atPose3(keys.pose(o.view_b)),
+                                     values.atDouble(keys.scale(o.view_a)), values.atDouble(keys.scale(o.view_b)),
+                                     depth_correction(values, keys, o.view_a), depth_correction(values, keys, o.view_b)))
+    return out

@@ -1,0 +1,160 @@
+"""``solve``: predictions + robot poses -> hand-eye calibration, metric scale, trajectory.
+
+Pipeline: load and validate -> lift matches to 3D -> initialise from the data ->
+Levenberg-Marquardt on the joint graph, re-weighted between rounds (IRLS with a
+Huber weight and a hard cut for gross outliers, so outlier matches do not bend the
+result) -> marginal covariances -> outputs.
+"""
+
+import logging
+import sys
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from scipy import stats
+
+from calib3r_graph.dataset import Dataset
+from calib3r_graph.errors import SolveError
+from calib3r_graph.graph import (Keys, NoiseOptions, add_depth_correction_priors, add_robot_factors,
+                                 add_scale_gauge_factors, add_scene_factors, depth_correction, initial_values,
+                                 match_residuals, point_sqrt_info)
+from calib3r_graph.init import initialise
+from calib3r_graph.observations import build_observations
+from calib3r_graph.predictions import Predictions, split_view_id
+
+log = logging.getLogger(__name__)
+
+CHI2_3_MEDIAN = stats.chi2.ppf(0.5, 3)
+OUTLIER_CUT_CHI2 = stats.chi2.ppf(0.999, 3)  # matches beyond this are dropped
+HUBER_K = np.sqrt(stats.chi2.ppf(0.95, 3))
+
+
+@dataclass
+class SolveOptions:
+    noise: NoiseOptions = field(default_factory=NoiseOptions)
+    max_matches_per_pair: int = 2000
+    irls_rounds: int = 2
+    max_iterations: int = 50
+    reprojection: bool = False  # see factors/reprojection.py: double-counts the match noise
+    seed: int = 0
+
+
+@dataclass
+class Solution:
+    ee_T_cam: dict  # camera -> Pose3
+    covariance: dict  # camera -> 6x6 (rad, m; GTSAM Pose3 tangent order)
+    metric_scale: dict  # camera -> (value, sigma)
+    base_T_cam: dict  # view -> Pose3
+    depth_scale: dict  # view -> metres per frontend unit
+    depth_correction: dict  # view -> (K,) relative correction coefficients
+    init_ee_T_cam: dict
+    stats: dict
+    views_dropped: list
+
+
+def _lm(graph, values, max_iterations, label):
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-6)
+    params.setAbsoluteErrorTol(1e-9)
+    t0 = time.perf_counter()
+
+    def hook(it, before, after):
+        print(f"[{label}] iteration {it:2d}: error {before:.6g} -> {after:.6g}  ({time.perf_counter() - t0:.1f} s)",
+              file=sys.stderr, flush=True)
+
+    params.iterationHook = hook
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = opt.optimize()
+    return result, opt.iterations(), graph.error(values), graph.error(result)
+
+
+def robust_weights(observations, residuals, sqrt_infos, conf):
+    """IRLS weights: Huber on each match's Mahalanobis distance, 0 beyond the 99.9 % chi2(3) cut.
+
+    The residual scale is estimated robustly (median) over all matches, so the cut
+    adapts when the nominal noise model is off.
+    """
+    r2 = [np.einsum("nij,nj->ni", W, e) for W, e in zip(sqrt_infos, residuals)]
+    r2 = [np.sum(x * x, axis=1) for x in r2]
+    sigma2 = np.median(np.concatenate(r2)) / CHI2_3_MEDIAN
+    out = []
+    for x, c in zip(r2, conf):
+        u2 = x / sigma2
+        w = np.minimum(1.0, HUBER_K / np.sqrt(np.maximum(u2, 1e-12)))
+        out.append(np.where(u2 > OUTLIER_CUT_CHI2, 0.0, w * c))
+    return out, float(np.sqrt(sigma2))
+
+
+def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
+    timings = {}
+    t = time.perf_counter()
+    observations = build_observations(preds, opt.max_matches_per_pair, seed=opt.seed)
+    if not observations:
+        raise SolveError(f"predictions '{preds.name}': no view pair has enough valid matches")
+    timings["observations"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    init = initialise(sorted(preds.views), observations, ds.base_T_ee, str(ds.root / ds.meta["robot"]["poses"]))
+    timings["initialisation"] = time.perf_counter() - t
+    used = set(init.base_T_cam)
+    pairs = [(o, m) for o, m in zip(observations, init.inliers) if o.view_a in used and o.view_b in used]
+    observations = [o for o, _ in pairs]
+    inliers = [m if m is not None else np.zeros(len(o), bool) for o, m in pairs]
+    views = sorted(used)
+    cameras = [c for c in ds.cameras if any(split_view_id(v)[0] == c for v in views)]
+    keys = Keys(views, cameras)
+    Ks = {v: preds.views[v].K for v in views}
+    values = initial_values(keys, init, opt.noise.depth_correction_sigma > 0)
+    conf = [o.weight for o in observations]
+    weights = [c * m for c, m in zip(conf, inliers)]
+
+    t = time.perf_counter()
+    history = []
+    for rnd in range(opt.irls_rounds + 1):
+        graph = gtsam.NonlinearFactorGraph()
+        add_scene_factors(graph, keys, observations, weights, values, Ks, opt.noise, opt.reprojection)
+        add_robot_factors(graph, keys, views, ds.base_T_ee, {c: values.atPose3(keys.hand_eye(c)) for c in cameras},
+                          opt.noise)
+        add_scale_gauge_factors(graph, keys, views, opt.noise)
+        add_depth_correction_priors(graph, keys, views, opt.noise)
+        values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, f"LM round {rnd + 1}/{opt.irls_rounds + 1}")
+        history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
+                        "matches_used": int(sum((w > 0).sum() for w in weights))})
+        if rnd == opt.irls_rounds:
+            break
+        unit_W = [point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b],
+                                  values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))),
+                                  values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)),
+                                  opt.noise, np.ones(len(o))) for o in observations]
+        weights, sigma = robust_weights(observations, match_residuals(observations, values, keys), unit_W, conf)
+    timings["optimisation"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    try:
+        marginals = gtsam.Marginals(graph, values)
+    except RuntimeError as e:
+        raise SolveError(f"the calibration is not observable from this data ({e}); add robot poses with "
+                         "rotation about different axes") from None
+    dof = max(sum(graph.at(i).dim() for i in range(graph.size())) - values.dim(), 1)
+    variance_factor = 2 * graph.error(values) / dof
+    covariance = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
+    metric = {c: (values.atDouble(keys.metric(c)), float(np.sqrt(marginals.marginalCovariance(keys.metric(c))[0, 0])))
+              for c in cameras}
+    timings["covariance"] = time.perf_counter() - t
+
+    residuals = np.concatenate([np.linalg.norm(e, axis=1) for e in match_residuals(observations, values, keys)])
+    stats_out = {"rounds": history, "timings_s": timings, "variance_factor": variance_factor,
+                 "views_used": len(views), "pairs_used": len(observations),
+                 "matches_used": history[-1]["matches_used"],
+                 "matches_total": int(sum(len(o) for o in observations)),
+                 "match_residual_median_rel": float(np.median(residuals))}
+    return Solution(
+        ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras},
+        covariance=covariance, metric_scale=metric,
+        base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
+        depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
+        depth_correction={v: depth_correction(values, keys, v) for v in views},
+        init_ee_T_cam=init.ee_T_cam, stats=stats_out, views_dropped=init.dropped_views)
