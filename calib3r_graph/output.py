@@ -12,6 +12,9 @@ import numpy as np
 
 from calib3r_graph.errors import OutputError
 
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
 
 @contextmanager
 def atomic_path(path, suffix=""):
@@ -25,6 +28,7 @@ def atomic_path(path, suffix=""):
         raise OutputError(f"{path}: cannot write ({e.strerror})") from None
     try:
         yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file normal permissions
         os.replace(tmp, path)
     except OSError as e:
         raise OutputError(f"{path}: cannot write ({e.strerror})") from None

@@ -164,3 +164,24 @@ def save_predictions(root, name: str, views: dict, pairs: list, info: dict):
 def available_predictions(root) -> list:
     pdir = Path(root) / "predictions"
     return sorted(p.name for p in pdir.iterdir() if p.is_dir() and not p.name.startswith(".")) if pdir.is_dir() else []
+
+
+def choose_predictions(ds, name: str | None) -> str:
+    """The predictions to solve from: the one named, else the only one (or 'sim' among several)."""
+    from calib3r_graph.errors import SolveError
+
+    have = available_predictions(ds.root)
+    if name is not None:
+        if name not in have:
+            raise InputError(Path(ds.root) / "predictions" / name,
+                             f"no such predictions (available: {', '.join(have) or 'none'})")
+        return name
+    if not have:
+        raise SolveError(f"{ds.root}: no predictions/ to solve from; make some with "
+                         "'calib3r-graph predict DATASET --frontend rgbd|colmap'")
+    if len(have) == 1:
+        return have[0]
+    for preferred in ("sim", "rgbd", "colmap"):
+        if preferred in have:
+            return preferred
+    raise SolveError(f"{ds.root}: several predictions ({', '.join(have)}); choose one with --predictions")

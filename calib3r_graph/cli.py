@@ -1,0 +1,169 @@
+"""Command-line interface: a thin layer over the library.
+
+Every domain error becomes one line on stderr and its exit code (see
+calib3r_graph.errors); tracebacks only with --debug.
+"""
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from calib3r_graph import __version__
+from calib3r_graph.errors import Calib3rError, InputError
+
+log = logging.getLogger("calib3r_graph")
+
+
+def _add_noise_args(p):
+    from calib3r_graph.graph import NoiseOptions
+
+    d = NoiseOptions()
+    g = p.add_argument_group("noise model (physical units)")
+    g.add_argument("--pixel-sigma-px", type=float, default=None,
+                   help="match noise on the frontend's grid (default: the predictions' info.json "
+                        f"match_noise_px, else {d.pixel_sigma_px})")
+    g.add_argument("--depth-sigma-rel", type=float, default=d.depth_sigma_rel, help="relative depth noise")
+    g.add_argument("--robot-sigma-mm", type=float, default=d.robot_sigma_mm, help="flange position noise")
+    g.add_argument("--robot-sigma-deg", type=float, default=d.robot_sigma_deg, help="flange orientation noise")
+    g.add_argument("--rig-sigma-mm", type=float, default=d.rig_sigma_mm, help="rig non-rigidity, position")
+    g.add_argument("--rig-sigma-deg", type=float, default=d.rig_sigma_deg, help="rig non-rigidity, orientation")
+    g.add_argument("--depth-correction-sigma", type=float, default=d.depth_correction_sigma,
+                   help="prior sigma of each view's smooth depth-correction coefficients (0 disables)")
+
+
+def _noise_from_args(args, info: dict):
+    from calib3r_graph.graph import NoiseOptions
+
+    px = args.pixel_sigma_px
+    if px is None:
+        px = float(info.get("match_noise_px", NoiseOptions().pixel_sigma_px))
+    return NoiseOptions(pixel_sigma_px=px, depth_sigma_rel=args.depth_sigma_rel, robot_sigma_mm=args.robot_sigma_mm,
+                        robot_sigma_deg=args.robot_sigma_deg, rig_sigma_mm=args.rig_sigma_mm,
+                        rig_sigma_deg=args.rig_sigma_deg, depth_correction_sigma=args.depth_correction_sigma)
+
+
+def cmd_solve(args):
+    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.predictions import choose_predictions, load_predictions
+    from calib3r_graph.results import write_results
+    from calib3r_graph.solve import SolveOptions, solve
+
+    ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
+    name = choose_predictions(ds, args.predictions)
+    preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames))
+    opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
+                       irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
+                       reprojection=args.reprojection)
+    sol = solve(ds, preds, opt)
+    out = Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name
+    summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud)
+    print(summary, end="")
+    print(f"  wrote {out}/calibration.json, trajectory.csv, summary.txt"
+          + ("" if args.no_cloud else ", reconstruction.ply"))
+
+
+def cmd_simulate(args):
+    from calib3r_graph.simulate import SimOptions, simulate
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise InputError(out, "exists and is not empty (use --force to write into it)")
+    opt = SimOptions(seed=args.seed, frames=args.frames, cameras=args.cameras, images=not args.no_images,
+                     pattern=args.pattern, width=args.width, height=args.height, unit=args.unit,
+                     depth_distortion=args.depth_distortion, outlier_fraction=args.outlier_fraction,
+                     matches_per_pair=args.matches_per_pair, prediction_downsample=args.prediction_downsample,
+                     robot_noise_mm=args.robot_noise_mm, robot_noise_deg=args.robot_noise_deg)
+    if not 1 <= opt.cameras <= 3:
+        raise InputError("--cameras", "must be 1, 2 or 3")
+    if opt.frames < 2:
+        raise InputError("--frames", "must be at least 2")
+    simulate(out, opt, progress=not args.quiet)
+    print(f"wrote {out} ({opt.frames} frames x {opt.cameras} camera(s), predictions/sim, ground_truth.yaml)")
+
+
+def cmd_evaluate(args):
+    from calib3r_graph.evaluate import evaluate
+    from calib3r_graph.output import atomic_write_json
+
+    report = evaluate(args.result, args.dataset)
+    for cam, e in report["hand_eye"].items():
+        print(f"{cam}: e_t = {e['e_t_m'] * 100:.3f} cm ({e['e_t_m'] * 1e3:.2f} mm)   "
+              f"e_theta = {e['e_theta_rad']:.5f} rad ({np.degrees(e['e_theta_rad']):.3f} deg)")
+    atomic_write_json(Path(args.result) / "evaluation.json", report)
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="calib3r-graph", description=__doc__.splitlines()[0] if __doc__ else None)
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("solve", help="joint hand-eye calibration and metric reconstruction of a dataset")
+    s.add_argument("dataset", help="dataset folder (calib3r-dataset/1)")
+    s.add_argument("--out", help="output folder (default: results/<dataset name>)")
+    s.add_argument("--predictions", help="name under DATASET/predictions/ (default: the only one, or 'sim')")
+    s.add_argument("--skip-missing", action="store_true", help="drop frames without a robot pose, with a warning")
+    g = s.add_argument_group("solver")
+    g.add_argument("--max-matches-per-pair", type=int, default=2000, help="confidence-weighted subsample")
+    g.add_argument("--irls-rounds", type=int, default=2, help="robust re-weighting rounds after the first solve")
+    g.add_argument("--max-iterations", type=int, default=50, help="LM iterations per round")
+    g.add_argument("--reprojection", action="store_true",
+                   help="add 2D reprojection factors (double-counts match noise; off by default)")
+    g.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
+    _add_noise_args(s)
+    s.set_defaults(func=cmd_solve)
+
+    m = sub.add_parser("simulate", help="render a synthetic dataset with ground truth and predictions")
+    m.add_argument("out", help="output dataset folder")
+    m.add_argument("--seed", type=int, default=0)
+    m.add_argument("--frames", type=int, default=12)
+    m.add_argument("--cameras", type=int, default=1, help="1-3 cameras on the flange")
+    m.add_argument("--pattern", action="store_true", help="put a 9x6 checkerboard (30 mm) on the table")
+    m.add_argument("--no-images", action="store_true", help="predictions only (fast)")
+    m.add_argument("--width", type=int, default=640)
+    m.add_argument("--height", type=int, default=480)
+    m.add_argument("--unit", choices=["m", "mm"], default="m", help="robot translation unit in the csv")
+    m.add_argument("--depth-distortion", type=float, default=0.015, help="peak smooth relative depth error")
+    m.add_argument("--outlier-fraction", type=float, default=0.04)
+    m.add_argument("--matches-per-pair", type=int, default=2000)
+    m.add_argument("--prediction-downsample", type=int, default=2, help="network grid = image / this")
+    m.add_argument("--robot-noise-mm", type=float, default=0.2)
+    m.add_argument("--robot-noise-deg", type=float, default=0.02)
+    m.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    m.set_defaults(func=cmd_simulate)
+    e = sub.add_parser("evaluate", help="compare a solve result with the dataset's ground truth")
+    e.add_argument("result", help="folder written by solve")
+    e.add_argument("dataset", help="dataset folder with ground_truth.yaml")
+    e.set_defaults(func=cmd_evaluate)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(levelname)s: %(message)s", stream=sys.stderr)
+    try:
+        args.func(args)
+    except Calib3rError as e:
+        if args.debug:
+            raise
+        print(f"calib3r-graph: error: {e}", file=sys.stderr)
+        return e.exit_code
+    except KeyboardInterrupt:
+        print("calib3r-graph: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # a bug: one line, the traceback with --debug
+        if args.debug:
+            raise
+        print(f"calib3r-graph: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
