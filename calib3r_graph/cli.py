@@ -53,7 +53,7 @@ def cmd_solve(args):
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
     name = choose_predictions(ds, args.predictions)
-    preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames))
+    preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
                        irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
                        reprojection=args.reprojection)

@@ -92,6 +92,8 @@ def _require(mapping, key, path, where):
 
 def _parse_camera(entry, path, index) -> Camera:
     where = f"cameras[{index}]"
+    if not isinstance(entry, dict):
+        raise InputError(path, "each camera must be a mapping", where)
     name = str(_require(entry, "name", path, where))
     where = f"cameras[{index}] ({name})"
     model = str(_require(entry, "model", path, where))
@@ -108,9 +110,9 @@ def _parse_camera(entry, path, index) -> Camera:
         raise InputError(path, "width, height, fx and fy must be positive and params finite", where)
     depth_scale = entry.get("depth_scale")
     if depth_scale is not None:
+        if not isinstance(depth_scale, (int, float)) or not depth_scale > 0:
+            raise InputError(path, "depth_scale must be a positive number (metres per depth unit)", where)
         depth_scale = float(depth_scale)
-        if not depth_scale > 0:
-            raise InputError(path, "depth_scale must be positive", where)
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise InputError(path, f"camera name '{name}' must be letters, digits, '_', '.' or '-'", where)
     return Camera(name, model, width, height, params, depth_scale)
@@ -131,7 +133,16 @@ def load_dataset(root, skip_missing: bool = False) -> Dataset:
         raise InputError(path, f"not valid YAML ({first})") from None
     if not isinstance(meta, dict):
         raise InputError(path, "must be a YAML mapping")
+    try:
+        return _interpret(root, path, meta, skip_missing)
+    except (TypeError, ValueError, AttributeError) as e:  # a value of the wrong type the checks did not name
+        raise InputError(path, f"invalid content ({type(e).__name__}: {e})") from None
+
+
+def _interpret(root: Path, path: Path, meta: dict, skip_missing: bool) -> Dataset:
     fmt = _require(meta, "format", path, None)
+    if not isinstance(meta.get("robot"), dict):
+        raise InputError(path, "must be a mapping with poses and unit", "robot")
     if fmt != FORMAT:
         raise InputError(path, f"unknown format '{fmt}' (this version reads '{FORMAT}')", "format")
     robot = _require(meta, "robot", path, None)
@@ -158,6 +169,8 @@ def load_dataset(root, skip_missing: bool = False) -> Dataset:
 
 
 def _validate_pattern(pattern, path):
+    if not isinstance(pattern, dict):
+        raise InputError(path, "must be a mapping with type, inner_corners and square_size", "pattern")
     if pattern.get("type") != "checkerboard":
         raise InputError(path, f"unsupported pattern type '{pattern.get('type')}'", "pattern.type")
     corners = pattern.get("inner_corners")

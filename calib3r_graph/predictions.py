@@ -2,7 +2,9 @@
 the co-visibility graph's pairwise matches (see the dataset format in the README)."""
 
 import json
+import logging
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,6 +12,8 @@ import numpy as np
 
 from calib3r_graph.errors import InputError
 from calib3r_graph.output import atomic_savez, atomic_write_json, staged_directory
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -50,7 +54,7 @@ def _load_npz(path: Path, required: dict) -> dict:
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as e:
+    except (OSError, ValueError, zipfile.BadZipFile, zlib.error, EOFError, KeyError) as e:
         raise InputError(path, f"unreadable npz ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     for key, (kinds, ndim) in required.items():
         if key not in data:
@@ -81,8 +85,12 @@ def load_view(path: Path) -> ViewPrediction:
     return ViewPrediction(depth, conf, K)
 
 
-def load_predictions(root, name: str, cameras=None, frames=None) -> Predictions:
-    """Load ``root/predictions/<name>`` and validate it against the dataset's cameras and frames."""
+def load_predictions(root, name: str, cameras=None, frames=None, skip_missing: bool = False) -> Predictions:
+    """Load ``root/predictions/<name>`` and validate it against the dataset's cameras and frames.
+
+    With ``skip_missing``, views of frames without a robot pose are dropped with a warning
+    (and so are the pairs that reference them) instead of being an error.
+    """
     pdir = Path(root) / "predictions" / name
     if not pdir.is_dir():
         raise InputError(pdir, "no such predictions directory")
@@ -95,7 +103,7 @@ def load_predictions(root, name: str, cameras=None, frames=None) -> Predictions:
             raise InputError(info_path, f"not valid JSON ({e})") from None
         if not isinstance(info, dict):
             raise InputError(info_path, "must be a JSON object")
-    views = {}
+    views, skipped = {}, set()
     vdir = pdir / "views"
     if vdir.is_dir():
         for cam_dir in sorted(p for p in vdir.iterdir() if p.is_dir()):
@@ -103,15 +111,20 @@ def load_predictions(root, name: str, cameras=None, frames=None) -> Predictions:
                 if cameras is not None and cam_dir.name not in cameras:
                     raise InputError(f, f"unknown camera '{cam_dir.name}' (not in dataset.yaml)")
                 if frames is not None and f.stem not in frames:
-                    raise InputError(f, f"frame {f.stem} has no row in robot_poses.csv")
+                    if skip_missing:
+                        log.warning("%s: frame %s has no robot pose; skipped", f, f.stem)
+                        skipped.add(view_id(cam_dir.name, f.stem))
+                        continue
+                    raise InputError(f, f"frame {f.stem} has no row in robot_poses.csv "
+                                        "(use --skip-missing to drop such frames)")
                 views[view_id(cam_dir.name, f.stem)] = load_view(f)
     if not views:
         raise InputError(vdir, "no view predictions (views/<camera>/<frame>.npz)")
-    pairs = load_pairs(pdir / "pairs.npz", views)
+    pairs = load_pairs(pdir / "pairs.npz", views, skipped)
     return Predictions(name, info, views, pairs)
 
 
-def load_pairs(path: Path, views: dict) -> list:
+def load_pairs(path: Path, views: dict, skipped=frozenset()) -> list:
     if not path.is_file():
         raise InputError(path, "missing (the co-visibility graph's matches)")
     d = _load_npz(path, {"view_a": ("US", 1), "view_b": ("US", 1), "offsets": ("iu", 1),
@@ -130,6 +143,8 @@ def load_pairs(path: Path, views: dict) -> list:
     pairs = []
     for e in range(n_edges):
         a, b = str(va[e]), str(vb[e])
+        if a in skipped or b in skipped:
+            continue
         for v in (a, b):
             if v not in views:
                 raise InputError(path, f"edge {e} references unknown view '{v}'", "view_a/view_b")

@@ -62,7 +62,7 @@ def _lm(graph, values, max_iterations, label):
     t0 = time.perf_counter()
 
     def hook(it, before, after):
-        print(f"[{label}] iteration {it:2d}: error {before:.6g} -> {after:.6g}  ({time.perf_counter() - t0:.1f} s)",
+        print(f"[{label}] iteration {it:2d}: cost {before:.6g} -> {after:.6g}  ({time.perf_counter() - t0:.1f} s)",
               file=sys.stderr, flush=True)
 
     params.iterationHook = hook
@@ -88,7 +88,14 @@ def robust_weights(observations, residuals, sqrt_infos, conf):
     return out, float(np.sqrt(sigma2))
 
 
+MIN_ROBOT_POSES = 3
+
+
 def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
+    frames = {split_view_id(v)[1] for v in preds.views}
+    if len(frames) < MIN_ROBOT_POSES:
+        raise SolveError(f"{ds.root}: only {len(frames)} robot pose(s) with predictions; hand-eye calibration "
+                         f"needs at least {MIN_ROBOT_POSES}, with rotations about two different axes")
     timings = {}
     t = time.perf_counter()
     observations = build_observations(preds, opt.max_matches_per_pair, seed=opt.seed)
