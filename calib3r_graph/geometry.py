@@ -22,33 +22,54 @@ def umeyama(src: np.ndarray, dst: np.ndarray, weights=None):
     return s, R, t
 
 
-def ransac_sim3(src, dst, rel_threshold=0.03, iterations=200, rng=None):
-    """Robust Sim(3) dst ~ s R src + t. Inliers: residual < rel_threshold * |dst - centroid| scale.
+def umeyama_batch(src: np.ndarray, dst: np.ndarray):
+    """Umeyama for a batch of minimal samples: src, dst (H, k, 3) -> s (H,), R (H, 3, 3), t (H, 3)."""
+    mu_s, mu_d = src.mean(1), dst.mean(1)
+    xs, xd = src - mu_s[:, None], dst - mu_d[:, None]
+    cov = np.einsum("hki,hkj->hij", xd, xs) / src.shape[1]
+    U, S, Vt = np.linalg.svd(cov)
+    sign = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    D = np.ones((len(src), 3))
+    D[:, 2] = sign
+    R = np.einsum("hij,hj,hjk->hik", U, D, Vt)
+    var_s = (xs**2).sum((1, 2)) / src.shape[1]
+    s = (S * D).sum(1) / np.maximum(var_s, 1e-300)
+    t = mu_d - s[:, None] * np.einsum("hij,hj->hi", R, mu_s)
+    return s, R, t
 
-    Returns (s, R, t, inlier mask); the threshold is relative because the frontend's
-    depth unit is unknown.
+
+def ransac_sim3(src, dst, rel_threshold=0.03, iterations=128, rng=None, max_score_points=300):
+    """Robust Sim(3) dst ~ s R src + t; hypotheses are generated and scored in one batch.
+
+    Inliers: residual < rel_threshold * median |dst| (relative, because the frontend's
+    depth unit is unknown). Returns (s, R, t, inlier mask) or None.
     """
     rng = rng or np.random.default_rng(0)
     n = len(src)
-    scale = np.median(np.linalg.norm(dst, axis=1))
-    thr = rel_threshold * scale
-    best = None
-    for _ in range(iterations):
-        idx = rng.choice(n, 3, replace=False)
-        s, R, t = umeyama(src[idx], dst[idx])
-        if not np.isfinite(s) or s <= 0:
-            continue
-        inl = np.linalg.norm(dst - (s * src @ R.T + t), axis=1) < thr
-        if best is None or inl.sum() > best.sum():
-            best = inl
-    if best is None or best.sum() < 3:
+    thr = rel_threshold * np.median(np.linalg.norm(dst, axis=1))
+    samples = rng.integers(0, n, size=(iterations, 3))
+    distinct = (samples[:, 0] != samples[:, 1]) & (samples[:, 1] != samples[:, 2]) & (samples[:, 0] != samples[:, 2])
+    samples = samples[distinct]
+    with np.errstate(all="ignore"):  # degenerate (collinear) samples give non-finite models, dropped below
+        s, R, t = umeyama_batch(src[samples], dst[samples])
+    ok = np.isfinite(s) & (s > 0) & np.isfinite(t).all(1)
+    if not ok.any():
         return None
+    s, R, t = s[ok], R[ok], t[ok]
+    score_idx = rng.choice(n, min(n, max_score_points), replace=False)
+    pred = s[:, None, None] * (R @ src[score_idx].T) + t[:, :, None]  # (H, 3, M)
+    diff = pred - dst[score_idx].T
+    count = (np.einsum("him,him->hm", diff, diff) < thr * thr).sum(1)
+    b = int(np.argmax(count))
+    best = np.linalg.norm(dst - (s[b] * src @ R[b].T + t[b]), axis=1) < thr
     for _ in range(3):  # refit on inliers, then re-select
-        s, R, t = umeyama(src[best], dst[best])
-        best = np.linalg.norm(dst - (s * src @ R.T + t), axis=1) < thr
         if best.sum() < 3:
             return None
-    return s, R, t, best
+        s1, R1, t1 = umeyama(src[best], dst[best])
+        best = np.linalg.norm(dst - (s1 * src @ R1.T + t1), axis=1) < thr
+    if best.sum() < 3:
+        return None
+    return s1, R1, t1, best
 
 
 def project_to_so3(M: np.ndarray) -> np.ndarray:

@@ -81,8 +81,25 @@ def point_sqrt_info(obs, K_a, K_b, a_T_b: gtsam.Pose3, scale_ratio_b_to_a: float
 
     R = a_T_b.rotation().matrix()
     C = cov(obs.pts_a, K_a) + scale_ratio_b_to_a**2 * (R @ cov(obs.pts_b, K_b) @ R.T)
-    L = np.linalg.cholesky(np.linalg.inv(C))  # L L^T = C^-1
-    return np.swapaxes(L, 1, 2) * np.sqrt(weights)[:, None, None]
+    return inverse_cholesky_3x3(C) * np.sqrt(weights)[:, None, None]
+
+
+def inverse_cholesky_3x3(C: np.ndarray) -> np.ndarray:
+    """W = L^-1 with C = L L^T, for a batch of SPD 3x3 matrices (N, 3, 3): |W e|^2 = e^T C^-1 e.
+
+    Written out in closed form: numpy's batched cholesky + inv cost ~10x more at this size.
+    """
+    l00 = np.sqrt(C[:, 0, 0])
+    l10, l20 = C[:, 1, 0] / l00, C[:, 2, 0] / l00
+    l11 = np.sqrt(C[:, 1, 1] - l10**2)
+    l21 = (C[:, 2, 1] - l20 * l10) / l11
+    l22 = np.sqrt(C[:, 2, 2] - l20**2 - l21**2)
+    W = np.zeros_like(C)
+    W[:, 0, 0], W[:, 1, 1], W[:, 2, 2] = 1 / l00, 1 / l11, 1 / l22
+    W[:, 1, 0] = -l10 / (l00 * l11)
+    W[:, 2, 1] = -l21 / (l11 * l22)
+    W[:, 2, 0] = -(l20 * W[:, 0, 0] + l21 * W[:, 1, 0]) / l22
+    return W
 
 
 def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise, reprojection=False):

@@ -31,7 +31,8 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from factors._lie import skew, whiten_rows
+from factors._lie import skew
+from factors.compression import make_compressed_factor
 
 
 @dataclass(frozen=True)
@@ -85,28 +86,35 @@ def match3d_error(m: Match3DMeasurement, this: gtsam.CustomFactor, values: gtsam
     e = g_a - Q / s_a
     if jacobians is not None:
         n = len(Q)
-        W = m.sqrt_info
-        eye = np.broadcast_to(np.eye(3), (n, 3, 3))
-        # d Q / d xi_a = [[Q]x, -I]  ->  d e / d xi_a = [-[Q]x, I] / s_a
-        J_a = np.concatenate([-skew(Q), eye], axis=2) / s_a
-        # d Q / d xi_b = [-R_ab [P_b]x, R_ab]  ->  d e / d xi_b = -(...) / s_a
-        J_b = np.concatenate([R_ab @ skew(P_b), -np.broadcast_to(R_ab, (n, 3, 3))], axis=2) / s_a
-        jacobians[0] = whiten_rows(W, J_a)
-        jacobians[1] = whiten_rows(W, J_b)
-        jacobians[2] = whiten_rows(W, (Q / s_a**2)[:, :, None])
-        jacobians[3] = whiten_rows(W, (-(g_b @ R_ab.T) / s_a)[:, :, None])
+        # All columns at once, then one batched whitening: [xi_a | xi_b | s_a | s_b | c_a | c_b].
+        cols = [np.concatenate([-skew(Q), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2) / s_a,  # d e/d xi_a
+                np.concatenate([R_ab @ skew(P_b), -np.broadcast_to(R_ab, (n, 3, 3))], axis=2) / s_a,  # d e/d xi_b
+                (Q / s_a**2)[:, :, None],  # d e/d s_a
+                (-(g_b @ R_ab.T) / s_a)[:, :, None]]  # d e/d s_b
         if len(keys) == 6:
             # d g_a / d c_a = pd_a phi_a^T;  d e / d c_b = -(s_b / s_a) R_ab pd_b phi_b^T
-            jacobians[4] = whiten_rows(W, np.einsum("ni,nk->nik", m.ray_depth_a, m.basis_a))
-            jacobians[5] = whiten_rows(W, np.einsum("ni,nk->nik", -(s_b / s_a) * (m.ray_depth_b @ R_ab.T), m.basis_b))
-    return np.einsum("nij,nj->ni", m.sqrt_info, e).reshape(-1)
+            cols.append(m.ray_depth_a[:, :, None] * m.basis_a[:, None, :])
+            cols.append((-(s_b / s_a) * (m.ray_depth_b @ R_ab.T))[:, :, None] * m.basis_b[:, None, :])
+        WJ = np.matmul(m.sqrt_info, np.concatenate(cols, axis=2)).reshape(3 * n, -1)
+        start = 0
+        for i, c in enumerate(cols):
+            jacobians[i] = WJ[:, start:start + c.shape[2]]
+            start += c.shape[2]
+    return np.matmul(m.sqrt_info, e[:, :, None]).reshape(-1)
 
 
-def make_match3d_factor(m: Match3DMeasurement, keys, noise=None) -> gtsam.CustomFactor:
-    """Bind a view pair's matches into one factor (whitening is already in ``m.sqrt_info``)."""
-    assert len(keys) == (6 if m.basis_a is not None else 4)
-    noise = noise or gtsam.noiseModel.Unit.Create(m.dim)
-    return gtsam.CustomFactor(noise, list(keys), partial(match3d_error, m))
+def make_match3d_factor(m: Match3DMeasurement, keys, compress: bool = True) -> gtsam.CustomFactor:
+    """Bind a view pair's matches into one factor (whitening is already in ``m.sqrt_info``).
+
+    With ``compress`` the factor has D + 1 rows instead of 3N (factors.compression: exact).
+    """
+    with_basis = m.basis_a is not None
+    assert len(keys) == (6 if with_basis else 4)
+    if compress:
+        k = m.basis_a.shape[1] if with_basis else 0
+        dims = [6, 6, 1, 1] + ([k, k] if with_basis else [])
+        return make_compressed_factor(match3d_error, m, keys, dims)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m.dim), list(keys), partial(match3d_error, m))
 
 
 def depth_correction_basis(uv: np.ndarray, width: int, height: int) -> np.ndarray:

@@ -24,6 +24,7 @@ import gtsam
 import numpy as np
 
 from factors._lie import skew, whiten_rows
+from factors.compression import make_compressed_factor
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,8 @@ def reprojection_error(m: ReprojectionMeasurement, this: gtsam.CustomFactor, val
                            np.einsum("nij,nj->ni", W, r_ba).reshape(-1)])
 
 
-def make_reprojection_factor(m: ReprojectionMeasurement, keys, noise=None) -> gtsam.CustomFactor:
-    noise = noise or gtsam.noiseModel.Unit.Create(m.dim)
-    return gtsam.CustomFactor(noise, list(keys), partial(reprojection_error, m))
+def make_reprojection_factor(m: ReprojectionMeasurement, keys, compress: bool = True) -> gtsam.CustomFactor:
+    """One factor for both directions of a pair; ``compress``: D + 1 rows (factors.compression)."""
+    if compress:
+        return make_compressed_factor(reprojection_error, m, keys, [6, 6, 1, 1])
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m.dim), list(keys), partial(reprojection_error, m))

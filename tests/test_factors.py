@@ -86,7 +86,7 @@ def test_match3d_jacobians(seed):
     _, _, pb = random_points(rng, n)
     A = rng.normal(size=(n, 3, 3))
     m = factors.Match3DMeasurement(pa, pb, A)
-    f = factors.make_match3d_factor(m, [0, 1, 2, 3])
+    f = factors.make_match3d_factor(m, [0, 1, 2, 3], compress=False)
     check_factor(lambda fac, v, H: factors.match3d_error(m, fac, v, H), f, pair_values(rng))
 
 
@@ -104,7 +104,7 @@ def test_reprojection_jacobians(seed):
     v.insert(3, float(rng.uniform(0.8, 1.2)))
     W = np.eye(2)[None] * rng.uniform(0.5, 2, size=(n, 1, 1))
     m = factors.ReprojectionMeasurement(pa, pb, uv_a, uv_b, K_a, K_b, W)
-    f = factors.make_reprojection_factor(m, [0, 1, 2, 3])
+    f = factors.make_reprojection_factor(m, [0, 1, 2, 3], compress=False)
     check_factor(lambda fac, vals, H: factors.reprojection_error(m, fac, vals, H), f, v, atol=1e-4)
 
 
@@ -209,5 +209,56 @@ def test_match3d_with_depth_correction_jacobians(seed):
     v = pair_values(rng)
     v.insert(4, rng.normal(size=5) * 0.05)
     v.insert(5, rng.normal(size=5) * 0.05)
-    f = factors.make_match3d_factor(m, [0, 1, 2, 3, 4, 5])
+    f = factors.make_match3d_factor(m, [0, 1, 2, 3, 4, 5], compress=False)
     check_factor(lambda fac, vals, H: factors.match3d_error(m, fac, vals, H), f, v)
+
+
+def _normal_equations(factor, values):
+    A, b = factor.linearize(values).jacobian()
+    return A.T @ A, A.T @ b, float(b @ b)
+
+
+@pytest.mark.parametrize("with_basis,n", [(False, 40), (True, 40), (True, 3)])
+def test_compressed_factor_is_exactly_equivalent(with_basis, n):
+    """Same cost, same J^T J and J^T r as the uncompressed factor (also with fewer rows than columns)."""
+    from factors.match3d import depth_correction_basis
+
+    rng = np.random.default_rng(7)
+    uv_a, _, pa = random_points(rng, n)
+    uv_b, _, pb = random_points(rng, n)
+    basis = (depth_correction_basis(uv_a, 640, 480), depth_correction_basis(uv_b, 640, 480)) if with_basis else (None, None)
+    m = factors.Match3DMeasurement(pa, pb, rng.normal(size=(n, 3, 3)), *basis)
+    keys = [0, 1, 2, 3] + ([4, 5] if with_basis else [])
+    v = pair_values(rng)
+    if with_basis:
+        v.insert(4, rng.normal(size=5) * 0.05)
+        v.insert(5, rng.normal(size=5) * 0.05)
+    full = factors.make_match3d_factor(m, keys, compress=False)
+    comp = factors.make_match3d_factor(m, keys, compress=True)
+    assert comp.dim() == (25 if with_basis else 15)
+    assert comp.error(v) == pytest.approx(full.error(v), rel=1e-10)
+    H1, g1, c1 = _normal_equations(full, v)
+    H2, g2, c2 = _normal_equations(comp, v)
+    np.testing.assert_allclose(H2, H1, rtol=1e-9, atol=1e-9 * np.abs(H1).max())
+    np.testing.assert_allclose(g2, g1, rtol=1e-9, atol=1e-9 * np.abs(g1).max())
+    assert c2 == pytest.approx(c1, rel=1e-9)
+
+
+def test_compressed_reprojection_factor_is_equivalent():
+    rng = np.random.default_rng(8)
+    n = 30
+    uv_a, K_a, pa = random_points(rng, n)
+    uv_b, K_b, pb = random_points(rng, n)
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(2, 1.1)
+    v.insert(3, 0.9)
+    m = factors.ReprojectionMeasurement(pa, pb, uv_a, uv_b, K_a, K_b, np.eye(2)[None].repeat(n, 0))
+    full = factors.make_reprojection_factor(m, [0, 1, 2, 3], compress=False)
+    comp = factors.make_reprojection_factor(m, [0, 1, 2, 3])
+    assert comp.error(v) == pytest.approx(full.error(v), rel=1e-10)
+    H1, g1, _ = _normal_equations(full, v)
+    H2, g2, _ = _normal_equations(comp, v)
+    np.testing.assert_allclose(H2, H1, rtol=1e-8, atol=1e-8 * np.abs(H1).max())
+    np.testing.assert_allclose(g2, g1, rtol=1e-8, atol=1e-8 * np.abs(g1).max())

@@ -56,3 +56,14 @@ def test_umeyama_exact():
     s, R_hat, t = umeyama(src, 0.7 * src @ R.T + 1.0)
     assert s == pytest.approx(0.7)
     np.testing.assert_allclose(R_hat, R, atol=1e-12)
+
+
+def test_inverse_cholesky_3x3_whitens():
+    from calib3r_graph.graph import inverse_cholesky_3x3
+
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(50, 3, 3))
+    C = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    W = inverse_cholesky_3x3(C)
+    np.testing.assert_allclose(np.swapaxes(W, 1, 2) @ W, np.linalg.inv(C), rtol=1e-9, atol=1e-9)
+    assert np.allclose(np.triu(W, 1), 0)
