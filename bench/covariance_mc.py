@@ -42,7 +42,7 @@ def one_run(seed, frames, cameras):
         out.append({"seed": seed, "camera": cam, "nees": float(xi @ np.linalg.solve(cov, xi)),
                     "err": xi.tolist(), "sigma": np.sqrt(np.diag(cov)).tolist(),
                     "nees_scale": float(((lam - lam_true) / lam_sigma) ** 2),
-                    "variance_factor": sol.stats["variance_factor"]})
+                    **sol.stats["noise_calibration"]})
     return out
 
 

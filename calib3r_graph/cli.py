@@ -46,18 +46,9 @@ def _noise_from_args(args, info: dict):
 
 
 def cmd_solve(args):
-    from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.predictions import choose_predictions, load_predictions
     from calib3r_graph.results import write_results
-    from calib3r_graph.solve import SolveOptions, solve
 
-    ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
-    name = choose_predictions(ds, args.predictions)
-    preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
-    opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
-                       irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
-                       reprojection=args.reprojection)
-    sol = solve(ds, preds, opt)
+    ds, preds, opt, sol = _solve_dataset(args)
     out = Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name
     summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud)
     print(summary, end="")
@@ -84,6 +75,40 @@ def cmd_simulate(args):
     print(f"wrote {out} ({opt.frames} frames x {opt.cameras} camera(s), predictions/sim, ground_truth.yaml)")
 
 
+def _solve_dataset(args):
+    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.predictions import choose_predictions, load_predictions
+    from calib3r_graph.solve import SolveOptions, solve
+
+    ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
+    name = choose_predictions(ds, args.predictions)
+    preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
+    opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
+                       irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
+                       reprojection=args.reprojection)
+    return ds, preds, opt, solve(ds, preds, opt)
+
+
+def cmd_plan(args):
+    from calib3r_graph.dataset import read_robot_poses
+    from calib3r_graph.output import atomic_write_json
+    from calib3r_graph.plan import rank_candidates
+
+    ds, preds, opt, sol = _solve_dataset(args)
+    candidates = read_robot_poses(Path(args.candidates), ds.robot_unit)
+    ranked = rank_candidates(ds, preds, sol, opt.noise, candidates)
+    t_now, r_now = max(np.sqrt(np.linalg.eigvalsh(np.asarray(c)[3:, 3:])[-1]) * 1e3 for c in sol.covariance.values()), \
+        max(np.degrees(np.sqrt(np.linalg.eigvalsh(np.asarray(c)[:3, :3])[-1])) for c in sol.covariance.values())
+    print(f"now: largest sigma {t_now:.3f} mm, {r_now:.4f} deg ({len(sol.base_T_cam)} views)")
+    print(f"{'rank':>4} {'candidate':>10} {'gain (nats)':>11} {'sigma t after':>14} {'sigma r after':>14}  overlaps")
+    for i, c in enumerate(ranked, 1):
+        print(f"{i:4d} {c.frame:>10} {c.information_gain_nats:11.3f} {c.sigma_t_mm_after:11.3f} mm "
+              f"{c.sigma_r_deg_after:10.4f} deg  {c.overlapping_view or '-'} ({c.visible_points} points)")
+    out = (Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name) / "plan.json"
+    atomic_write_json(out, {"candidates_file": str(args.candidates), "ranking": [vars(c) for c in ranked]})
+    print(f"wrote {out}")
+
+
 def cmd_evaluate(args):
     from calib3r_graph.evaluate import evaluate
     from calib3r_graph.output import atomic_write_json
@@ -95,14 +120,7 @@ def cmd_evaluate(args):
     atomic_write_json(Path(args.result) / "evaluation.json", report)
 
 
-def build_parser():
-    p = argparse.ArgumentParser(prog="calib3r-graph", description=__doc__.splitlines()[0] if __doc__ else None)
-    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
-    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
-    sub = p.add_subparsers(dest="command", required=True)
-
-    s = sub.add_parser("solve", help="joint hand-eye calibration and metric reconstruction of a dataset")
+def _add_solve_args(s):
     s.add_argument("dataset", help="dataset folder (calib3r-dataset/1)")
     s.add_argument("--out", help="output folder (default: results/<dataset name>)")
     s.add_argument("--predictions", help="name under DATASET/predictions/ (default: the only one, or 'sim')")
@@ -113,9 +131,25 @@ def build_parser():
     g.add_argument("--max-iterations", type=int, default=50, help="LM iterations per round")
     g.add_argument("--reprojection", action="store_true",
                    help="add 2D reprojection factors (double-counts match noise; off by default)")
-    g.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
     _add_noise_args(s)
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="calib3r-graph", description=__doc__.splitlines()[0] if __doc__ else None)
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("solve", help="joint hand-eye calibration and metric reconstruction of a dataset")
+    _add_solve_args(s)
+    s.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
     s.set_defaults(func=cmd_solve)
+
+    pl = sub.add_parser("plan", help="rank candidate robot poses by expected information gain")
+    _add_solve_args(pl)
+    pl.add_argument("--candidates", required=True, help="CSV like robot_poses.csv (frame,x,y,z,qx,qy,qz,qw)")
+    pl.set_defaults(func=cmd_plan)
 
     m = sub.add_parser("simulate", help="render a synthetic dataset with ground truth and predictions")
     m.add_argument("out", help="output dataset folder")

@@ -23,6 +23,7 @@ from calib3r_graph.graph import (Keys, NoiseOptions, add_depth_correction_priors
 from calib3r_graph.init import initialise
 from calib3r_graph.observations import build_observations
 from calib3r_graph.predictions import Predictions, split_view_id
+from calib3r_graph.uncertainty import covariance_diagnostics, motion_diagnostics, noise_calibration
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +37,7 @@ class SolveOptions:
     noise: NoiseOptions = field(default_factory=NoiseOptions)
     max_matches_per_pair: int = 2000
     irls_rounds: int = 2
+    noise_calibration: bool = True  # variance factor x design effect on the scene factors (uncertainty.py)
     max_iterations: int = 50
     reprojection: bool = False  # see factors/reprojection.py: double-counts the match noise
     seed: int = 0
@@ -52,6 +54,13 @@ class Solution:
     init_ee_T_cam: dict
     stats: dict
     views_dropped: list
+    diagnostics: list = field(default_factory=list)  # observability warnings, plain words
+    # The final graph, its solution and keys (for planning); not written anywhere.
+    graph: object = field(default=None, repr=False)
+    values: object = field(default=None, repr=False)
+    keys: object = field(default=None, repr=False)
+    observations: list = field(default_factory=list, repr=False)
+    scene_weight_scale: float = 1.0
 
 
 def _lm(graph, values, max_iterations, label):
@@ -120,23 +129,42 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
 
     t = time.perf_counter()
     history = []
-    for rnd in range(opt.irls_rounds + 1):
+
+    def build_graph(scene_weights):
         graph = gtsam.NonlinearFactorGraph()
-        add_scene_factors(graph, keys, observations, weights, values, Ks, opt.noise, opt.reprojection)
+        add_scene_factors(graph, keys, observations, scene_weights, values, Ks, opt.noise, opt.reprojection)
         add_robot_factors(graph, keys, views, ds.base_T_ee, {c: values.atPose3(keys.hand_eye(c)) for c in cameras},
                           opt.noise)
         add_scale_gauge_factors(graph, keys, views, opt.noise)
         add_depth_correction_priors(graph, keys, views, opt.noise)
-        values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, f"LM round {rnd + 1}/{opt.irls_rounds + 1}")
+        return graph
+
+    def nominal_whitening():
+        return [point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b],
+                                values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))),
+                                values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)),
+                                opt.noise, np.ones(len(o))) for o in observations]
+
+    n_rounds = opt.irls_rounds + 1 + int(opt.noise_calibration)
+    sigma0_sq, kappa = 1.0, 1.0
+    for rnd in range(n_rounds):
+        label = f"LM round {rnd + 1}/{n_rounds}"
+        if opt.noise_calibration and rnd == n_rounds - 1:
+            # Final round: scene information scaled by 1 / (sigma0^2 kappa), measured at the robust solution.
+            residuals = match_residuals(observations, values, keys)
+            grid = {v: preds.views[v].depth.shape[::-1] for v in views}
+            sigma0_sq, kappa = noise_calibration(observations, residuals, nominal_whitening(), weights, grid)
+            log.info("scene noise calibration: variance factor %.3g, design effect %.1f (matches per independent "
+                     "observation)", sigma0_sq, kappa)
+            weights = [w / (sigma0_sq * kappa) for w in weights]
+            label += " (noise-calibrated)"
+        graph = build_graph(weights)
+        values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label)
         history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
-        if rnd == opt.irls_rounds:
-            break
-        unit_W = [point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b],
-                                  values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))),
-                                  values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)),
-                                  opt.noise, np.ones(len(o))) for o in observations]
-        weights, sigma = robust_weights(observations, match_residuals(observations, values, keys), unit_W, conf)
+        if rnd < opt.irls_rounds:
+            weights, _ = robust_weights(observations, match_residuals(observations, values, keys),
+                                        nominal_whitening(), conf)
     timings["optimisation"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -145,15 +173,21 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     except RuntimeError as e:
         raise SolveError(f"the calibration is not observable from this data ({e}); add robot poses with "
                          "rotation about different axes") from None
-    dof = max(sum(graph.at(i).dim() for i in range(graph.size())) - values.dim(), 1)
-    variance_factor = 2 * graph.error(values) / dof
     covariance = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
     metric = {c: (values.atDouble(keys.metric(c)), float(np.sqrt(marginals.marginalCovariance(keys.metric(c))[0, 0])))
               for c in cameras}
     timings["covariance"] = time.perf_counter() - t
+    diagnostics = motion_diagnostics(ds.base_T_ee, {split_view_id(v)[1] for v in views})
+    for c in cameras:
+        diagnostics += covariance_diagnostics(c, values.atPose3(keys.hand_eye(c)), covariance[c])
+    for msg in diagnostics:
+        log.warning("%s", msg)
 
     residuals = np.concatenate([np.linalg.norm(e, axis=1) for e in match_residuals(observations, values, keys)])
-    stats_out = {"rounds": history, "timings_s": timings, "variance_factor": variance_factor,
+    stats_out = {"rounds": history, "timings_s": timings,
+                 "noise_calibration": {"variance_factor": sigma0_sq, "design_effect": kappa,
+                                       "method": "scene information scaled by 1/(variance factor x design effect)"
+                                       if opt.noise_calibration else "off"},
                  "views_used": len(views), "pairs_used": len(observations),
                  "matches_used": history[-1]["matches_used"],
                  "matches_total": int(sum(len(o) for o in observations)),
@@ -164,4 +198,6 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
         base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
         depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
         depth_correction={v: depth_correction(values, keys, v) for v in views},
-        init_ee_T_cam=init.ee_T_cam, stats=stats_out, views_dropped=init.dropped_views)
+        init_ee_T_cam=init.ee_T_cam, stats=stats_out, views_dropped=init.dropped_views, diagnostics=diagnostics,
+        graph=graph, values=values, keys=keys, observations=observations,
+        scene_weight_scale=1.0 / (sigma0_sq * kappa))

@@ -1,0 +1,116 @@
+"""How far to trust a calibration: noise calibration of the scene factors and
+observability diagnostics.
+
+Dense matches from a network are not independent: its depth errors are smooth, so
+neighbouring matches share most of their error, and treating thousands of them as
+independent makes the marginals over-confident by large factors. After the robust
+rounds the solver calibrates the scene factors' noise from their own residuals:
+
+* **A posteriori variance factor** ``sigma0^2``: the mean whitened residual per degree
+  of freedom under the nominal per-point model (pixel + relative depth noise).
+* **Effective number of independent observations** through Kish's design effect
+  ``kappa``: matches are grouped in cells of the first view's image; if their errors
+  were independent the squared norm of a cell's mean residual would be
+  ``3 sigma0^2 / n_cell``; ``kappa = n_cell |mean|^2 / (3 sigma0^2)``, averaged over
+  cells, measures how many matches count as one (``n_eff = n / kappa``).
+
+The scene information is multiplied by ``1 / (sigma0^2 kappa)`` and the graph is
+solved once more, so robot and scene factors are weighted by their real
+(correlation-aware) noise and the marginals account for it.
+"""
+
+import numpy as np
+
+from calib3r_graph.predictions import split_view_id
+
+
+def noise_calibration(observations, residuals, unit_sqrt_info, weights, grid_size, cells=(6, 8)):
+    """(sigma0^2, kappa) of the scene factors from residuals at the solution.
+
+    residuals: per pair (N, 3) unwhitened; unit_sqrt_info: per pair (N, 3, 3) nominal
+    whitening; weights: per pair (N,) confidence x robust weight (0 = not used);
+    grid_size: view -> (width, height) of the frontend grid.
+    """
+    white = [np.matmul(W, e[:, :, None])[:, :, 0] * np.sqrt(w)[:, None]
+             for W, e, w in zip(unit_sqrt_info, residuals, weights)]
+    used = [w > 0 for w in weights]
+    rows = sum(3 * u.sum() for u in used)
+    sigma0_sq = float(sum((r[u] ** 2).sum() for r, u in zip(white, used)) / max(rows, 1))
+    num, den = 0.0, 0
+    for o, r, u in zip(observations, white, used):
+        w_px, h_px = grid_size[o.view_a]
+        cx = np.clip((o.uv_a[:, 0] / w_px * cells[1]).astype(int), 0, cells[1] - 1)
+        cy = np.clip((o.uv_a[:, 1] / h_px * cells[0]).astype(int), 0, cells[0] - 1)
+        cell = (cy * cells[1] + cx)[u]
+        r = r[u]
+        n_c = np.bincount(cell, minlength=cells[0] * cells[1])
+        sums = np.stack([np.bincount(cell, weights=r[:, k], minlength=len(n_c)) for k in range(3)], 1)
+        ok = n_c >= 5
+        # n_c |mean|^2 = |sum|^2 / n_c; expected 3 sigma0^2 for independent errors
+        num += float(((sums[ok] ** 2).sum(1) / n_c[ok]).sum())
+        den += int(ok.sum())
+    kappa = max(1.0, num / max(den, 1) / (3 * sigma0_sq)) if den else 1.0
+    return sigma0_sq, kappa
+
+
+def _direction(d) -> str:
+    d = np.round(np.asarray(d, float) * np.sign(d[np.argmax(np.abs(d))]), 2) + 0.0  # + 0.0: no "-0.00"
+    return f"[{d[0]:.2f} {d[1]:.2f} {d[2]:.2f}]"
+
+
+def motion_diagnostics(base_T_ee: dict, frames) -> list:
+    """Plain-words warnings about the robot motion (too few poses, too little or degenerate rotation)."""
+    import gtsam
+
+    frames = sorted(frames)
+    msgs = []
+    if len(frames) < 5:
+        msgs.append(f"only {len(frames)} robot poses: use at least 8-10 for a reliable calibration")
+    axes, angles = [], []
+    for i, a in enumerate(frames):
+        for b in frames[i + 1:]:
+            w = gtsam.Rot3.Logmap(base_T_ee[a].between(base_T_ee[b]).rotation())
+            angles.append(np.linalg.norm(w))
+            if angles[-1] > np.radians(2):
+                axes.append(w / angles[-1] * angles[-1])
+    if not angles or np.degrees(max(angles)) < 10:
+        msgs.append("the flange rotates less than 10 degrees between any two poses: the translation of ee_T_cam "
+                    "is poorly constrained; add poses rotated 30-90 degrees about different axes")
+    elif len(axes) >= 2:
+        # Second singular value of the (angle-weighted) rotation axes: ~0 when all axes are parallel.
+        s = np.linalg.svd(np.array(axes), compute_uv=False)
+        _, _, Vt = np.linalg.svd(np.array(axes))
+        if s[1] < 0.15 * s[0]:
+            msgs.append(f"all robot rotations are about nearly parallel axes (ee axis ~{_direction(Vt[0])}): "
+                        f"the translation of ee_T_cam along that axis is poorly constrained; add "
+                        "poses that rotate about a perpendicular axis")
+    pure = np.mean(np.degrees(angles) < 1.0) if angles else 0.0
+    if pure > 0.5:
+        msgs.append(f"{100 * pure:.0f} % of pose pairs are pure translations: they fix the scale and rotation but "
+                    "not the translation of ee_T_cam; add rotated poses")
+    return msgs
+
+
+def covariance_diagnostics(camera: str, T_ee_cam, cov, weak_mm: float = 2.0, weak_deg: float = 0.2) -> list:
+    """Warnings for poorly constrained directions of ee_T_cam, read off its marginal covariance."""
+    from calib3r_graph.results import covariance_in_ee_frame
+
+    C = covariance_in_ee_frame(T_ee_cam, cov)
+    msgs = []
+    for block, unit, scale, limit, what in ((slice(3, 6), "mm", 1e3, weak_mm, "translation"),
+                                            (slice(0, 3), "deg", np.degrees(1), weak_deg, "rotation")):
+        lam, V = np.linalg.eigh(C[block, block])
+        sigma = np.sqrt(max(lam[-1], 0)) * scale
+        if sigma > limit:
+            hint = ("add poses that rotate the flange about axes perpendicular to this direction"
+                    if what == "translation" else "add poses that rotate about this axis and other axes")
+            msgs.append(f"{camera}: {what} along ee direction {_direction(V[:, -1])} is poorly "
+                        f"constrained (sigma {sigma:.2f} {unit}); {hint}")
+    return msgs
+
+
+def views_by_camera(views) -> dict:
+    out = {}
+    for v in views:
+        out.setdefault(split_view_id(v)[0], []).append(v)
+    return out

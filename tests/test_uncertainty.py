@@ -1,0 +1,81 @@
+"""Uncertainty: observability diagnostics, noise calibration, next best pose."""
+
+import gtsam
+import numpy as np
+import pytest
+
+from calib3r_graph.uncertainty import covariance_diagnostics, motion_diagnostics, noise_calibration
+
+
+def poses_about_axis(axis, n=8, rng=None):
+    rng = rng or np.random.default_rng(0)
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return {f"{i:04d}": gtsam.Pose3(gtsam.Rot3.Expmap(axis * rng.uniform(-1, 1)), rng.normal(size=3) * 0.2)
+            for i in range(n)}
+
+
+def test_parallel_rotation_axes_are_reported_with_the_axis():
+    msgs = motion_diagnostics(poses_about_axis([0, 0, 1]), [f"{i:04d}" for i in range(8)])
+    assert any("parallel" in m and "[0.00 0.00 1.00]" in m for m in msgs), msgs
+
+
+def test_diverse_rotations_give_no_warning():
+    rng = np.random.default_rng(1)
+    poses = {f"{i:04d}": gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.5), rng.normal(size=3) * 0.2)
+             for i in range(10)}
+    assert motion_diagnostics(poses, list(poses)) == []
+
+
+def test_too_little_rotation_and_too_few_poses():
+    poses = {f"{i}": gtsam.Pose3(gtsam.Rot3.Expmap([0.01 * i, 0, 0]), np.array([0.1 * i, 0, 0])) for i in range(4)}
+    msgs = motion_diagnostics(poses, list(poses))
+    assert any("only 4 robot poses" in m for m in msgs)
+    assert any("less than 10 degrees" in m for m in msgs)
+
+
+def test_weak_direction_is_named_in_the_ee_frame():
+    cov = np.diag([1e-8] * 3 + [1e-8, 1e-8, (5e-3) ** 2])  # 5 mm along cam z
+    X = gtsam.Pose3(gtsam.Rot3.Rx(np.pi / 2), np.zeros(3))  # cam z = -ee y
+    msgs = covariance_diagnostics("cam0", X, cov)
+    assert len(msgs) == 1 and "translation" in msgs[0] and "[0.00 1.00 0.00]" in msgs[0] and "5.00 mm" in msgs[0]
+
+
+def test_noise_calibration_recovers_variance_and_detects_correlation():
+    from calib3r_graph.observations import PairObservations
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    uv = rng.uniform([0, 0], [320, 240], size=(n, 2))
+    obs = PairObservations("a/0", "b/0", uv, uv, np.ones((n, 3)), np.ones((n, 3)), np.ones(n),
+                           np.zeros((n, 0)), np.zeros((n, 0)))
+    W = np.broadcast_to(np.eye(3), (n, 3, 3))
+    white = rng.normal(scale=0.5, size=(n, 3))
+    s2, kappa = noise_calibration([obs], [white], [W], [np.ones(n)], {"a/0": (320, 240)})
+    assert s2 == pytest.approx(0.25, rel=0.05) and kappa == pytest.approx(1.0, abs=0.3)
+    # A smooth error shared by neighbours (one value per image cell) is what the design effect sees.
+    cell = (uv[:, 0] // 40).astype(int) * 10 + (uv[:, 1] // 40).astype(int)
+    smooth = rng.normal(scale=0.5, size=(100, 3))[cell]
+    s2, kappa = noise_calibration([obs], [white + smooth], [W], [np.ones(n)], {"a/0": (320, 240)})
+    assert s2 == pytest.approx(0.5, rel=0.1) and kappa > 10
+
+
+@pytest.mark.slow
+def test_plan_prefers_informative_candidates(tmp_path):
+    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.plan import rank_candidates
+    from calib3r_graph.predictions import load_predictions
+    from calib3r_graph.solve import SolveOptions, solve
+    from tests.conftest import SAMPLE
+
+    ds = load_dataset(SAMPLE)
+    preds = load_predictions(SAMPLE, "sim", ds.cameras, set(ds.frames))
+    sol = solve(ds, preds, SolveOptions())
+    E = ds.base_T_ee["0002"]
+    cands = {"near": E.compose(gtsam.Pose3(gtsam.Rot3.Expmap([0.2, -0.1, 0.1]), np.array([0.01, 0.0, 0.0]))),
+             "away": gtsam.Pose3(gtsam.Rot3.Rx(np.pi / 2), np.array([0.0, 0.0, 1.0]))}
+    ranked = rank_candidates(ds, preds, sol, NoiseOptions(), cands)
+    by = {c.frame: c for c in ranked}
+    assert ranked[0].frame == "near"
+    assert by["near"].information_gain_nats > 0.05 and by["near"].visible_points > 100
+    assert by["away"].information_gain_nats == pytest.approx(0.0, abs=1e-3)
