@@ -77,15 +77,24 @@ def cmd_simulate(args):
 
 def _solve_dataset(args):
     from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.predictions import choose_predictions, load_predictions
+    from calib3r_graph.predictions import available_predictions, choose_predictions, load_predictions
     from calib3r_graph.solve import SolveOptions, solve
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
+    if args.predictions is None and not available_predictions(ds.root):
+        from calib3r_graph.frontends import best_frontend, run_frontend
+
+        frontend = best_frontend(ds)
+        log.info("no predictions in %s: running the %s frontend (cached in predictions/%s/)", ds.root, frontend,
+                 frontend)
+        print(f"no predictions: made them with the '{frontend}' frontend (cached in "
+              f"{ds.root / 'predictions' / frontend})", file=sys.stderr)
+        run_frontend(ds, frontend, progress=not args.quiet)
     name = choose_predictions(ds, args.predictions)
     preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
                        irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
-                       reprojection=args.reprojection)
+                       reprojection=args.reprojection, init=args.init)
     return ds, preds, opt, solve(ds, preds, opt)
 
 
@@ -109,6 +118,15 @@ def cmd_plan(args):
     print(f"wrote {out}")
 
 
+def cmd_predict(args):
+    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.frontends import run_frontend
+
+    ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
+    name = run_frontend(ds, args.frontend, args.name, progress=not args.quiet)
+    print(f"wrote {ds.root / 'predictions' / name}")
+
+
 def cmd_evaluate(args):
     from calib3r_graph.evaluate import evaluate
     from calib3r_graph.output import atomic_write_json
@@ -129,6 +147,9 @@ def _add_solve_args(s):
     g.add_argument("--max-matches-per-pair", type=int, default=2000, help="confidence-weighted subsample")
     g.add_argument("--irls-rounds", type=int, default=2, help="robust re-weighting rounds after the first solve")
     g.add_argument("--max-iterations", type=int, default=50, help="LM iterations per round")
+    g.add_argument("--init", choices=["predictions", "colmap"], default="predictions",
+                   help="visual initialisation: pairwise Sim(3) + spanning tree, or COLMAP's poses "
+                        "(predictions made by the colmap frontend)")
     g.add_argument("--reprojection", action="store_true",
                    help="add 2D reprojection factors (double-counts match noise; off by default)")
     _add_noise_args(s)
@@ -150,6 +171,13 @@ def build_parser():
     _add_solve_args(pl)
     pl.add_argument("--candidates", required=True, help="CSV like robot_poses.csv (frame,x,y,z,qx,qy,qz,qw)")
     pl.set_defaults(func=cmd_plan)
+
+    pr = sub.add_parser("predict", help="make predictions/<name>/ from the dataset's images (and depth)")
+    pr.add_argument("dataset", help="dataset folder (calib3r-dataset/1)")
+    pr.add_argument("--frontend", choices=["rgbd", "colmap"], required=True)
+    pr.add_argument("--name", help="predictions name (default: the frontend's name)")
+    pr.add_argument("--skip-missing", action="store_true", help="drop frames without a robot pose, with a warning")
+    pr.set_defaults(func=cmd_predict)
 
     m = sub.add_parser("simulate", help="render a synthetic dataset with ground truth and predictions")
     m.add_argument("out", help="output dataset folder")

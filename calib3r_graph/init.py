@@ -164,9 +164,16 @@ def hand_eye_closed_form(comps, base_T_ee, robot_file="robot_poses.csv", max_pai
     return ee_T_cam, scales
 
 
-def initialise(views, observations, base_T_ee, robot_file="robot_poses.csv") -> Initialisation:
+def initialise(views, observations, base_T_ee, robot_file="robot_poses.csv", visual_poses=None) -> Initialisation:
+    """``visual_poses`` ({view: world_T_cam 4x4}, e.g. COLMAP's, in the predictions' depth unit)
+    replaces the spanning tree of pairwise alignments when given."""
     sims = pairwise_sim3(observations)
-    comps = spanning_tree_poses(views, observations, sims)
+    if visual_poses is not None:
+        comps = [{v: (gtsam.Pose3(visual_poses[v]), 1.0) for v in views if v in visual_poses}]
+        if not comps[0]:
+            raise SolveError("--init: none of the predicted views has an initial pose")
+    else:
+        comps = spanning_tree_poses(views, observations, sims)
     usable, dropped = [], []
     for c in comps:
         frames = {split_view_id(v)[1] for v in c}

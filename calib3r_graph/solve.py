@@ -38,6 +38,7 @@ class SolveOptions:
     max_matches_per_pair: int = 2000
     irls_rounds: int = 2
     noise_calibration: bool = True  # variance factor x design effect on the scene factors (uncertainty.py)
+    init: str = "predictions"  # "predictions": pairwise Sim(3) + spanning tree; "colmap": the frontend's poses
     max_iterations: int = 50
     reprojection: bool = False  # see factors/reprojection.py: double-counts the match noise
     seed: int = 0
@@ -113,7 +114,13 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     timings["observations"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    init = initialise(sorted(preds.views), observations, ds.base_T_ee, str(ds.root / ds.meta["robot"]["poses"]))
+    visual_poses = None
+    if opt.init == "colmap":
+        from calib3r_graph.frontends.colmap import read_poses_csv
+
+        visual_poses = read_poses_csv(ds.root / "predictions" / preds.name / "poses.csv")
+    init = initialise(sorted(preds.views), observations, ds.base_T_ee, str(ds.root / ds.meta["robot"]["poses"]),
+                      visual_poses)
     timings["initialisation"] = time.perf_counter() - t
     used = set(init.base_T_cam)
     pairs = [(o, m) for o, m in zip(observations, init.inliers) if o.view_a in used and o.view_b in used]
