@@ -127,6 +127,16 @@ def cmd_predict(args):
     print(f"wrote {ds.root / 'predictions' / name}")
 
 
+def cmd_convert(args):
+    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.frontends.foundation import convert
+
+    ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
+    name = convert(args.model, args.file, ds, name=args.name, order=args.order, vggt_mode=args.vggt_mode,
+                   neighbours=args.neighbours)
+    print(f"wrote {ds.root / 'predictions' / name}")
+
+
 def cmd_evaluate(args):
     from calib3r_graph.evaluate import evaluate
     from calib3r_graph.output import atomic_write_json
@@ -178,6 +188,19 @@ def build_parser():
     pr.add_argument("--name", help="predictions name (default: the frontend's name)")
     pr.add_argument("--skip-missing", action="store_true", help="drop frames without a robot pose, with a warning")
     pr.set_defaults(func=cmd_predict)
+
+    cv = sub.add_parser("convert", help="turn a VGGT / DUSt3R / MASt3R export into predictions/<name>/")
+    cv.add_argument("model", choices=["vggt", "dust3r", "mast3r"])
+    cv.add_argument("file", help="the .npz saved where the model ran")
+    cv.add_argument("dataset", help="dataset folder (calib3r-dataset/1) the images came from")
+    cv.add_argument("--name", help="predictions name (default: the model's name)")
+    cv.add_argument("--order", help="text file: the image paths in the order given to the model "
+                                     "(needed when the npz has no image_names)")
+    cv.add_argument("--vggt-mode", choices=["crop", "pad"], default="crop",
+                    help="load_and_preprocess_images mode used for VGGT")
+    cv.add_argument("--neighbours", type=int, default=5, help="co-visibility: top-k neighbours per view")
+    cv.add_argument("--skip-missing", action="store_true", help=argparse.SUPPRESS)
+    cv.set_defaults(func=cmd_convert)
 
     m = sub.add_parser("simulate", help="render a synthetic dataset with ground truth and predictions")
     m.add_argument("out", help="output dataset folder")
