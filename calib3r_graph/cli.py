@@ -137,6 +137,61 @@ def cmd_convert(args):
     print(f"wrote {ds.root / 'predictions' / name}")
 
 
+def cmd_compare(args):
+    from calib3r_graph import compare as cmp
+    from calib3r_graph.dataset import load_dataset, load_ground_truth
+    from calib3r_graph.errors import SolveError
+    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.output import atomic_write_json, atomic_write_text, staged_directory
+    from calib3r_graph.predictions import available_predictions, choose_predictions, load_predictions
+
+    ds = load_dataset(args.dataset)
+    preds = None
+    if available_predictions(ds.root) or args.predictions:
+        name = choose_predictions(ds, args.predictions)
+        preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames))
+    noise = NoiseOptions()
+    if preds is not None and "match_noise_px" in preds.info:
+        noise = NoiseOptions(pixel_sigma_px=float(preds.info["match_noise_px"]))
+    methods = args.methods.split(",") if args.methods else cmp.METHODS
+    unknown = set(methods) - set(cmp.METHODS)
+    if unknown:
+        raise InputError("--methods", f"unknown method(s) {sorted(unknown)}; choose from {cmp.METHODS}")
+    result = cmp.compare(ds, preds, noise, methods)
+    gt = load_ground_truth(ds.root)
+    if gt is not None:
+        reference, ref_name = gt["hand_eye"], "ground truth"
+    elif result["methods"].get("pattern-ba", {}).get("status") == "ok":
+        reference = {c: gtsam_pose(v["T_ee_cam"]) for c, v in result["methods"]["pattern-ba"]["cameras"].items()}
+        ref_name = "pattern-ba (no ground truth)"
+    else:
+        reference, ref_name = {}, None
+    out = Path(args.out)
+    with staged_directory(out) as stage:
+        atomic_write_json(stage / "comparison.json", result)
+        if ref_name:
+            table = cmp.markdown_table(result, reference, ref_name)
+            atomic_write_text(stage / "comparison.md", table)
+            cmp.bar_plot(result, reference, stage / "comparison.png", f"{ds.root.name}: errors against {ref_name}")
+            print(table)
+        if args.views:
+            if not ref_name:
+                raise SolveError("--views needs ground truth or a pattern (pattern-ba) to measure errors against")
+            views = [int(v) for v in args.views.split(",")]
+            sweep = cmp.views_sweep(ds, preds, noise, views, args.repeats, methods, reference)
+            atomic_write_json(stage / "views_sweep.json", sweep)
+            cmp.sweep_plot(sweep, stage / "views_sweep.png", ref_name)
+    for m, r in result["methods"].items():
+        print(f"{m:16s} {r['status']:40.40s} {r['seconds']:6.1f} s")
+    print(f"wrote {out}/comparison.json" + (", comparison.md, comparison.png" if ref_name else ""))
+
+
+def gtsam_pose(T):
+    import gtsam
+
+    return gtsam.Pose3(np.asarray(T, dtype=float))
+
+
 def cmd_evaluate(args):
     from calib3r_graph.evaluate import evaluate
     from calib3r_graph.output import atomic_write_json
@@ -220,6 +275,15 @@ def build_parser():
     m.add_argument("--robot-noise-deg", type=float, default=0.02)
     m.add_argument("--force", action="store_true", help="write into a non-empty folder")
     m.set_defaults(func=cmd_simulate)
+    c = sub.add_parser("compare", help="run every calibration method on the same data, timed, with a table")
+    c.add_argument("dataset", help="dataset folder (calib3r-dataset/1)")
+    c.add_argument("--out", required=True, help="output folder: comparison.json, comparison.md, PNG plots")
+    c.add_argument("--predictions", help="predictions for the prediction-based methods")
+    c.add_argument("--methods", help="comma-separated subset of the methods (default: all)")
+    c.add_argument("--views", help="robustness sweep over the number of poses, e.g. 5,7,9,...,25")
+    c.add_argument("--repeats", type=int, default=3, help="random subsets per number of poses")
+    c.set_defaults(func=cmd_compare)
+
     e = sub.add_parser("evaluate", help="compare a solve result with the dataset's ground truth")
     e.add_argument("result", help="folder written by solve")
     e.add_argument("dataset", help="dataset folder with ground_truth.yaml")

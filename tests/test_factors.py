@@ -262,3 +262,18 @@ def test_compressed_reprojection_factor_is_equivalent():
     H2, g2, _ = _normal_equations(comp, v)
     np.testing.assert_allclose(H2, H1, rtol=1e-8, atol=1e-8 * np.abs(H1).max())
     np.testing.assert_allclose(g2, g1, rtol=1e-8, atol=1e-8 * np.abs(g1).max())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pattern_factor_jacobians(seed):
+    from factors.pattern import PatternMeasurement, make_pattern_factor, pattern_error
+
+    rng = np.random.default_rng(seed)
+    corners = np.c_[np.mgrid[0:4, 0:3].reshape(2, -1).T * 0.03, np.zeros(12)]
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), np.array([0, 0, 0.5]) + rng.normal(size=3) * 0.02))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.02))
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), K)
+    f = make_pattern_factor(m, [0, 1])
+    check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)

@@ -176,3 +176,21 @@ def read_poses_csv(path: Path) -> dict:
     except (ValueError, IndexError) as e:
         raise InputError(path, f"row {i}: not a pose ({e})") from None
     return out
+
+
+def colmap_trajectory(ds, progress=False, max_features=2048) -> dict:
+    """Only COLMAP's trajectory: {view: world_T_cam 4x4} of the registered images (temporary workspace)."""
+    work = Path(tempfile.mkdtemp(prefix="calib3r-colmap-"))
+    try:
+        rec, names = run_colmap(ds, work, max_features, progress)
+        out = {}
+        for image_id in rec.reg_image_ids():
+            img = rec.image(image_id)
+            if img.name in names:
+                cfw = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
+                T = np.eye(4)
+                T[:3] = cfw.matrix()
+                out[names[img.name]] = np.linalg.inv(T)
+        return out
+    finally:
+        shutil.rmtree(work, ignore_errors=True)

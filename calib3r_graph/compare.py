@@ -1,0 +1,240 @@
+"""``compare``: every method calibration engineers use, on the same data, timed.
+
+Methods (names as written to comparison.json):
+  tsai, park, horaud, andreff, daniilidis  OpenCV's closed-form solvers on the pattern (detection + PnP)
+  pattern-ba       joint reprojection adjustment over ee_T_cam, base_T_board and the views (pattern.py)
+  jcr-colmap       two-stage: a pycolmap trajectory, then hand-eye with the metric scale found by a
+                   grid search over the scale (as JCR does)
+  jcr-predictions  the same two stages on the trajectory from our predictions (pairwise Sim(3) +
+                   spanning tree), without the joint graph
+  calib3r-graph    ours
+A method that cannot run (no pattern, no images) is reported with status "error: ...".
+"""
+
+import dataclasses
+import logging
+import time
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from calib3r_graph.errors import Calib3rError, SolveError
+from calib3r_graph.geometry import project_to_so3
+from calib3r_graph.predictions import Predictions, split_view_id
+
+log = logging.getLogger(__name__)
+
+PATTERN_METHODS = ["tsai", "park", "horaud", "andreff", "daniilidis", "pattern-ba"]
+METHODS = ["tsai", "park", "horaud", "andreff", "daniilidis", "pattern-ba", "jcr-colmap", "jcr-predictions",
+           "calib3r-graph"]
+
+
+def subset_dataset(ds, frames):
+    frames = set(frames)
+    return dataclasses.replace(ds, base_T_ee={f: p for f, p in ds.base_T_ee.items() if f in frames})
+
+
+def subset_predictions(preds: Predictions, frames) -> Predictions:
+    frames = set(frames)
+    views = {v: p for v, p in preds.views.items() if split_view_id(v)[1] in frames}
+    pairs = [p for p in preds.pairs if p.view_a in views and p.view_b in views]
+    return Predictions(preds.name, preds.info, views, pairs)
+
+
+def two_stage_hand_eye(trajectory: dict, base_T_ee: dict, scales=np.logspace(-4, 4, 161)) -> dict:
+    """JCR-style: a fixed visual trajectory {view: world_T_cam (Pose3, unknown scale)}; per camera the
+    rotation from AX = XB (Kabsch on motion axes), then the scale by grid search (coarse, then two
+    finer grids around the best), translation by least squares at each scale."""
+    by_cam = {}
+    for v, T in trajectory.items():
+        by_cam.setdefault(split_view_id(v)[0], []).append((split_view_id(v)[1], T))
+    out = {}
+    for cam, vs in by_cam.items():
+        pairs = [(a, b) for i, a in enumerate(vs) for b in vs[i + 1:]]
+        A = [base_T_ee[a[0]].between(base_T_ee[b[0]]) for a, b in pairs]
+        B = [a[1].between(b[1]) for a, b in pairs]
+        rot = [(gtsam.Rot3.Logmap(x.rotation()), gtsam.Rot3.Logmap(y.rotation())) for x, y in zip(A, B)
+               if np.linalg.norm(gtsam.Rot3.Logmap(y.rotation())) > np.radians(1)]
+        if len(rot) < 2:
+            raise SolveError(f"{cam}: fewer than two rotating motions in the trajectory")
+        al, be = map(np.array, zip(*rot))
+        R_X = project_to_so3(np.einsum("ni,nj->ij", al, be))
+        M = np.vstack([x.rotation().matrix() - np.eye(3) for x in A])
+        tA = np.concatenate([x.translation() for x in A])
+        RtB = np.concatenate([R_X @ y.translation() for y in B])
+
+        def fit(lam):
+            t, *_ = np.linalg.lstsq(M, lam * RtB - tA, rcond=None)
+            return np.linalg.norm(M @ t - (lam * RtB - tA)), t
+
+        grid = scales
+        for _ in range(3):
+            res = [fit(l)[0] for l in grid]
+            k = int(np.argmin(res))
+            lo, hi = grid[max(k - 1, 0)], grid[min(k + 1, len(grid) - 1)]
+            grid = np.linspace(lo, hi, 101)
+        lam = grid[int(np.argmin([fit(l)[0] for l in grid]))]
+        out[cam] = gtsam.Pose3(gtsam.Rot3(R_X), fit(lam)[1])
+    return out
+
+
+def run_method(name, ds, preds, noise, frames=None, detections=None):
+    """{camera: ee_T_cam} of one method on the given frames (all if None).
+
+    ``detections``: a dict shared between calls, so the board is detected once per frame set.
+    """
+    from calib3r_graph import pattern
+
+    sub = subset_dataset(ds, frames) if frames is not None else ds
+    if name in pattern.OPENCV_METHODS or name == "pattern-ba":
+        if not ds.pattern:
+            raise SolveError("no pattern in dataset.yaml")
+        detections = {} if detections is None else detections
+        key = tuple(sub.base_T_ee)
+        if key not in detections:
+            t = time.perf_counter()
+            detections[key] = {c: pattern.detect(sub, c) for c in sub.cameras}
+            detections[("seconds",) + key] = time.perf_counter() - t
+        dets = detections[key]
+        if name != "pattern-ba":
+            return {c: pattern.opencv_hand_eye(sub, d, name) for c, d in dets.items() if len(d) >= 3}
+        init = {c: pattern.opencv_hand_eye(sub, d, "park") for c, d in dets.items() if len(d) >= 3}
+        if not init:
+            raise SolveError("the board is not found in enough images")
+        return pattern.pattern_ba(sub, {c: dets[c] for c in init}, noise, init)
+    if name == "jcr-colmap":
+        from calib3r_graph.frontends.colmap import colmap_trajectory
+
+        traj = colmap_trajectory(sub)
+        return two_stage_hand_eye({v: gtsam.Pose3(T) for v, T in traj.items()}, sub.base_T_ee)
+    if preds is None:
+        raise SolveError("no predictions")
+    p = subset_predictions(preds, sub.base_T_ee) if frames is not None else preds
+    if name == "jcr-predictions":
+        from calib3r_graph.init import pairwise_sim3, spanning_tree_poses
+        from calib3r_graph.observations import build_observations
+
+        obs = build_observations(p)
+        comps = spanning_tree_poses(sorted(p.views), obs, pairwise_sim3(obs))
+        biggest = max(comps, key=len)
+        return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee)
+    if name == "calib3r-graph":
+        from calib3r_graph.solve import SolveOptions, solve
+
+        return solve(sub, p, SolveOptions(noise=noise)).ee_T_cam
+    raise ValueError(name)
+
+
+def compare(ds, preds, noise, methods=METHODS, frames=None) -> dict:
+    results, detections = {}, {}
+    for m in methods:
+        t = time.perf_counter()
+        try:
+            X = run_method(m, ds, preds, noise, frames, detections)
+            status = "ok" if X else "error: no camera could be calibrated"
+        except (Calib3rError, np.linalg.LinAlgError, RuntimeError, ValueError) as e:
+            X, status = {}, f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+        seconds = time.perf_counter() - t
+        key = ("seconds",) + tuple(subset_dataset(ds, frames).base_T_ee if frames is not None else ds.base_T_ee)
+        if m in PATTERN_METHODS and key in detections and seconds < detections[key]:
+            seconds += detections[key]  # every pattern method pays the (shared) board detection
+        results[m] = {"cameras": {c: {"T_ee_cam": x.matrix().tolist()} for c, x in X.items()},
+                      "seconds": seconds, "status": status}
+        log.info("%s: %s (%.1f s)", m, status, results[m]["seconds"])
+    return {"methods": results}
+
+
+def errors_against(result: dict, reference: dict) -> dict:
+    """{method: {camera: (e_t m, e_theta rad)}} against {camera: Pose3}."""
+    from calib3r_graph.geometry import pose_error
+
+    out = {}
+    for m, r in result["methods"].items():
+        out[m] = {}
+        for c, v in r["cameras"].items():
+            if c in reference:
+                et, er = pose_error(gtsam.Pose3(np.array(v["T_ee_cam"])), reference[c])
+                out[m][c] = (et, np.radians(er))
+    return out
+
+
+def markdown_table(result: dict, reference: dict, reference_name: str) -> str:
+    errs = errors_against(result, reference)
+    cams = sorted({c for e in errs.values() for c in e})
+    head = "| method | " + " | ".join(f"{c} e_t (cm) | {c} e_θ (rad)" for c in cams) + " | time (s) | status |"
+    lines = [f"Errors against {reference_name} (the paper's e_t in cm and e_θ in rad).", "", head,
+             "|---|" + "---|---|" * len(cams) + "---|---|"]
+    for m, r in result["methods"].items():
+        cells = []
+        for c in cams:
+            e = errs[m].get(c)
+            cells += [f"{e[0] * 100:.3f}", f"{e[1]:.5f}"] if e else ["–", "–"]
+        lines.append(f"| {m} | " + " | ".join(cells) + f" | {r['seconds']:.1f} | {r['status']} |")
+    return "\n".join(lines) + "\n"
+
+
+def bar_plot(result: dict, reference: dict, path: Path, title: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    errs = errors_against(result, reference)
+    names = [m for m in result["methods"] if errs.get(m)]
+    et = [np.mean([e[0] for e in errs[m].values()]) * 1e3 for m in names]
+    er = [np.degrees(np.mean([e[1] for e in errs[m].values()])) for m in names]
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for a, vals, lab in ((ax[0], et, "e_t (mm)"), (ax[1], er, "e_θ (deg)")):
+        bars = a.bar(names, vals, color=["tab:red" if n == "calib3r-graph" else "tab:gray" for n in names])
+        a.set_yscale("log")
+        a.set_ylabel(lab)
+        a.tick_params(axis="x", rotation=45)
+        a.bar_label(bars, fmt="%.3g", fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def views_sweep(ds, preds, noise, views_list, repeats, methods, reference, seed=0) -> dict:
+    """Errors of every method against the number of robot poses, over random subsets."""
+    rng = np.random.default_rng(seed)
+    frames = list(ds.frames)
+    rows = []
+    for n in views_list:
+        if n > len(frames):
+            continue
+        for r in range(repeats):
+            sub = sorted(rng.choice(frames, n, replace=False))
+            res = compare(ds, preds, noise, methods, sub)
+            for m, per_cam in errors_against(res, reference).items():
+                for c, (et, er) in per_cam.items():
+                    rows.append({"views": n, "repeat": r, "method": m, "camera": c, "e_t_m": et, "e_theta_rad": er})
+    return {"rows": rows}
+
+
+def sweep_plot(sweep: dict, path: Path, reference_name: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = sweep["rows"]
+    methods = sorted({r["method"] for r in rows}, key=METHODS.index)
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for m in methods:
+        ns = sorted({r["views"] for r in rows if r["method"] == m})
+        for a, key, scale in ((ax[0], "e_t_m", 1e2), (ax[1], "e_theta_rad", 1.0)):
+            vals = [[r[key] * scale for r in rows if r["method"] == m and r["views"] == n] for n in ns]
+            a.errorbar(ns, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], marker="o", capsize=2,
+                       label=m, lw=2.5 if m == "calib3r-graph" else 1)
+    ax[0].set_ylabel(f"e_t (cm) vs {reference_name}")
+    ax[1].set_ylabel(f"e_θ (rad) vs {reference_name}")
+    for a in ax:
+        a.set_xlabel("number of robot poses")
+        a.set_yscale("log")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,114 @@
+"""Pattern-based reference methods: chessboard detection + PnP, OpenCV's five closed-form
+hand-eye solvers, and ``pattern-ba`` — the strongest pattern method: a joint
+reprojection adjustment over every camera's ee_T_cam, the board pose in the base frame
+and each view's pose, where each view is tied to its robot pose by the robot pose factor
+(robot noise), so noisy robot poses are absorbed rather than trusted."""
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import gtsam
+import numpy as np
+
+import factors
+from calib3r_graph.errors import SolveError
+from calib3r_graph.geometry import mean_pose
+from factors.hand_eye import robot_pose_noise_covariance
+from factors.pattern import PatternMeasurement, make_pattern_factor
+
+log = logging.getLogger(__name__)
+
+OPENCV_METHODS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK,
+                  "horaud": cv2.CALIB_HAND_EYE_HORAUD, "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
+                  "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}
+
+
+@dataclass
+class Detection:
+    frame: str
+    uv: np.ndarray  # (N, 2) corners
+    cam_T_board: gtsam.Pose3  # from PnP
+    reprojection_px: float
+
+
+def board_points(pattern) -> np.ndarray:
+    cols, rows = pattern["inner_corners"]
+    g = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * pattern["square_size"]
+    return np.c_[g, np.zeros(len(g))]
+
+
+def detect(ds, camera: str, frames=None) -> list:
+    """Chessboard corners and PnP pose in every image of a camera where the whole board is found."""
+    if not ds.pattern:
+        raise SolveError("no pattern in dataset.yaml")
+    cam = ds.cameras[camera]
+    cols, rows = ds.pattern["inner_corners"]
+    obj = board_points(ds.pattern)
+    out = []
+    for f in frames or ds.frames:
+        path = ds.image_path(camera, f)
+        if path is None:
+            continue
+        gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if gray is None:
+            continue
+        ok, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+        if not ok:
+            continue
+        uv = corners.reshape(-1, 2).astype(np.float64)
+        ok, rvec, tvec = cv2.solvePnP(obj, uv, cam.K, cam.dist, flags=cv2.SOLVEPNP_ITERATIVE)
+        if not ok:
+            continue
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, cam.K, cam.dist)
+        err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - uv) ** 2, 1))))
+        R, _ = cv2.Rodrigues(rvec)
+        if np.any(cam.dist):  # pattern-ba works on a pinhole model: undistort the corners once
+            uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K).reshape(-1, 2)
+        out.append(Detection(f, uv, gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()), err))
+    return out
+
+
+def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
+    if len(detections) < 3:
+        raise SolveError(f"the board is found in only {len(detections)} images (3 needed)")
+    R_g2b, t_g2b, R_t2c, t_t2c = [], [], [], []
+    for d in detections:
+        E = ds.base_T_ee[d.frame]
+        R_g2b.append(E.rotation().matrix())
+        t_g2b.append(E.translation())
+        R_t2c.append(d.cam_T_board.rotation().matrix())
+        t_t2c.append(d.cam_T_board.translation())
+    R, t = cv2.calibrateHandEye(R_g2b, t_g2b, R_t2c, t_t2c, method=OPENCV_METHODS[method])
+    return gtsam.Pose3(gtsam.Rot3(R), t.ravel())
+
+
+def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100) -> dict:
+    """Joint adjustment; returns {camera: ee_T_cam}. Uses every camera that saw the board."""
+    obj = board_points(ds.pattern)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    k_board = gtsam.symbol("b", 0)
+    cams = [c for c in detections_by_cam if detections_by_cam[c]]
+    boards = []
+    for j, c in enumerate(cams):
+        X = init_ee_T_cam[c]
+        values.insert(gtsam.symbol("e", j), X)
+        for d in detections_by_cam[c]:
+            boards.append(ds.base_T_ee[d.frame].compose(X).compose(d.cam_T_board))
+    values.insert(k_board, mean_pose(boards))
+    cov_robot = {c: robot_pose_noise_covariance(init_ee_T_cam[c], np.radians(noise.robot_sigma_deg),
+                                                noise.robot_sigma_mm * 1e-3) for c in cams}
+    i = 0
+    for j, c in enumerate(cams):
+        K = ds.cameras[c].K
+        for d in detections_by_cam[c]:
+            k_cam = gtsam.symbol("v", i)
+            i += 1
+            values.insert(k_cam, ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]))
+            graph.add(make_pattern_factor(PatternMeasurement(obj, d.uv, K, sigma_px), [k_board, k_cam]))
+            graph.add(factors.make_robot_pose_factor(ds.base_T_ee[d.frame], [gtsam.symbol("e", j), k_cam],
+                                                     gtsam.noiseModel.Gaussian.Covariance(cov_robot[c])))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    return {c: result.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
