@@ -192,6 +192,22 @@ def gtsam_pose(T):
     return gtsam.Pose3(np.asarray(T, dtype=float))
 
 
+def cmd_import(args):
+    from calib3r_graph.importers import import_recording
+
+    dst = Path(args.dst)
+    if dst.exists() and any(dst.iterdir()) and not args.force:
+        raise InputError(dst, "exists and is not empty (use --force to write into it)")
+    board = None
+    if args.board:
+        try:
+            board = tuple(int(x) for x in args.board.lower().split("x"))
+            assert len(board) == 2
+        except (ValueError, AssertionError):
+            raise InputError("--board", f"'{args.board}' is not COLSxROWS (inner corners), e.g. 28x17") from None
+    print(import_recording(args.format, args.src, dst, board, progress=not args.quiet))
+
+
 def cmd_evaluate(args):
     from calib3r_graph.evaluate import evaluate
     from calib3r_graph.output import atomic_write_json
@@ -283,6 +299,14 @@ def build_parser():
     c.add_argument("--views", help="robustness sweep over the number of poses, e.g. 5,7,9,...,25")
     c.add_argument("--repeats", type=int, default=3, help="random subsets per number of poses")
     c.set_defaults(func=cmd_compare)
+
+    im = sub.add_parser("import", help="convert a public recording (rwhe, tabb) into a dataset")
+    im.add_argument("format", choices=["rwhe", "tabb"])
+    im.add_argument("src", help="the recording's folder, as published")
+    im.add_argument("dst", help="output dataset folder")
+    im.add_argument("--board", help="chessboard inner corners COLSxROWS (rwhe needs it; tabb reads its file)")
+    im.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    im.set_defaults(func=cmd_import)
 
     e = sub.add_parser("evaluate", help="compare a solve result with the dataset's ground truth")
     e.add_argument("result", help="folder written by solve")

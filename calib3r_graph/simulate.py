@@ -270,7 +270,7 @@ def simulate(out_dir, opt: SimOptions, progress: bool = True) -> Path:
     views, gt_views = {}, {}
     with staged_directory(out_dir) as stage:
         it = [(f, E, j) for f, E in zip(frames, true_ee) for j in range(opt.cameras)]
-        for f, E, j in tqdm(it, desc="render", disable=not progress, leave=False):
+        for f, E, j in tqdm(it, desc="render", disable=None if progress else True, leave=False):
             cam, pose = cams[j], E.compose(mounts[j])
             vid = view_id(cam.name, f)
             if opt.images:
@@ -305,7 +305,7 @@ def simulate(out_dir, opt: SimOptions, progress: bool = True) -> Path:
                 if b.split("/")[1] == a.split("/")[1] and s > 0.1:
                     edges.add(tuple(sorted((a, b))))
         pairs = []
-        for a, b in tqdm(sorted(edges), desc="matches", disable=not progress, leave=False):
+        for a, b in tqdm(sorted(edges), desc="matches", disable=None if progress else True, leave=False):
             p = simulate_matches(rng, views, a, b, opt.matches_per_pair, opt)
             if p is not None:
                 pairs.append(p)

@@ -46,7 +46,7 @@ def run_colmap(ds, work: Path, max_features=2048, progress=True):
         pycolmap.logging.minloglevel = 2  # COLMAP's own INFO lines only with --debug
     db = work / "database.db"
     names = {}
-    steps = tqdm(total=3, desc="colmap", disable=not progress, leave=False)
+    steps = tqdm(total=3, desc="colmap", disable=None if progress else True, leave=False)
     for cam in ds.cameras.values():
         imgs = []
         for f in ds.frames:

@@ -44,7 +44,7 @@ def predict_rgbd(ds, name="rgbd", neighbours=5, n_features=4000, max_pairs=None,
     items = [(c, f) for c in ds.cameras.values() for f in ds.frames if ds.image_path(c.name, f)]
     if not items:
         raise InputError(ds.root / "images", "no images for any camera and frame in robot_poses.csv")
-    for cam, frame in tqdm(items, desc="rgbd: features", disable=not progress, leave=False):
+    for cam, frame in tqdm(items, desc="rgbd: features", disable=None if progress else True, leave=False):
         depth = load_depth_m(ds, cam, frame)
         if depth is None:
             log.warning("%s/%s: no depth image; view skipped", cam.name, frame)
@@ -61,7 +61,7 @@ def predict_rgbd(ds, name="rgbd", neighbours=5, n_features=4000, max_pairs=None,
     ids = sorted(views)
     candidates = list(itertools.combinations(ids, 2))
     matches, scores = {}, {}
-    for a, b in tqdm(candidates, desc="rgbd: matching", disable=not progress, leave=False):
+    for a, b in tqdm(candidates, desc="rgbd: matching", disable=None if progress else True, leave=False):
         m = match_verified(feats[a], feats[b], Ks[a], Ks[b])
         if m is not None:
             matches[(a, b)] = m
