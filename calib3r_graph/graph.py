@@ -147,6 +147,17 @@ def add_robot_factors(graph, keys, views, base_T_ee, ee_T_cam_init, noise: Noise
                                                     keys.pose(ref), keys.pose(v)], rig_noise))
 
 
+def robot_chi2(keys, views, base_T_ee, values, noise: NoiseOptions) -> tuple[float, int]:
+    """(sum of whitened squared robot-pose residuals, number of frames) at ``values``, with the
+    same reference-view choice and noise as :func:`add_robot_factors`."""
+    graph = gtsam.NonlinearFactorGraph()
+    add_robot_factors(graph, keys, views, base_T_ee,
+                      {c: values.atPose3(keys.hand_eye(c)) for c in keys.cameras if values.exists(keys.hand_eye(c))},
+                      noise)
+    robot = [graph.at(i) for i in range(graph.size()) if graph.at(i).dim() == 6 and len(graph.at(i).keys()) == 2]
+    return 2.0 * sum(f.error(values) for f in robot), len(robot)
+
+
 def add_scale_gauge_factors(graph, keys, views, noise: NoiseOptions):
     by_cam = {}
     for v in views:

@@ -6,6 +6,7 @@ Huber weight and a hard cut for gross outliers, so outlier matches do not bend t
 result) -> marginal covariances -> outputs.
 """
 
+import dataclasses
 import logging
 import sys
 import time
@@ -19,7 +20,7 @@ from calib3r_graph.dataset import Dataset
 from calib3r_graph.errors import SolveError
 from calib3r_graph.graph import (Keys, NoiseOptions, add_depth_correction_priors, add_robot_factors,
                                  add_scale_gauge_factors, add_scene_factors, depth_correction, initial_values,
-                                 match_residuals, point_sqrt_info)
+                                 match_residuals, point_sqrt_info, robot_chi2)
 from calib3r_graph.init import initialise
 from calib3r_graph.observations import build_observations
 from calib3r_graph.predictions import Predictions, split_view_id
@@ -137,13 +138,13 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     t = time.perf_counter()
     history = []
 
-    def build_graph(scene_weights):
+    def build_graph(scene_weights, noise):
         graph = gtsam.NonlinearFactorGraph()
-        add_scene_factors(graph, keys, observations, scene_weights, values, Ks, opt.noise, opt.reprojection)
+        add_scene_factors(graph, keys, observations, scene_weights, values, Ks, noise, opt.reprojection)
         add_robot_factors(graph, keys, views, ds.base_T_ee, {c: values.atPose3(keys.hand_eye(c)) for c in cameras},
-                          opt.noise)
-        add_scale_gauge_factors(graph, keys, views, opt.noise)
-        add_depth_correction_priors(graph, keys, views, opt.noise)
+                          noise)
+        add_scale_gauge_factors(graph, keys, views, noise)
+        add_depth_correction_priors(graph, keys, views, noise)
         return graph
 
     def nominal_whitening():
@@ -153,7 +154,8 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                                 opt.noise, np.ones(len(o))) for o in observations]
 
     n_rounds = opt.irls_rounds + 1 + int(opt.noise_calibration)
-    sigma0_sq, kappa = 1.0, 1.0
+    sigma0_sq, kappa, robot_factor = 1.0, 1.0, 1.0
+    noise = opt.noise
     for rnd in range(n_rounds):
         label = f"LM round {rnd + 1}/{n_rounds}"
         if opt.noise_calibration and rnd == n_rounds - 1:
@@ -164,8 +166,19 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
             log.info("scene noise calibration: variance factor %.3g, design effect %.1f (matches per independent "
                      "observation)", sigma0_sq, kappa)
             weights = [w / (sigma0_sq * kappa) for w in weights]
+            # Robot factor group: chi2 over its redundancy (6 per frame, less ee_T_cam and the
+            # world's similarity). Real arms are often worse than their spec; never better.
+            chi2, n_frames = robot_chi2(keys, views, ds.base_T_ee, values, opt.noise)
+            robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
+            if robot_factor > 1.0:
+                log.warning("robot poses are %.1fx noisier than --robot-sigma-mm/-deg say (%.2g mm, %.2g deg): "
+                            "using %.2g mm, %.2g deg", np.sqrt(robot_factor), opt.noise.robot_sigma_mm,
+                            opt.noise.robot_sigma_deg, opt.noise.robot_sigma_mm * np.sqrt(robot_factor),
+                            opt.noise.robot_sigma_deg * np.sqrt(robot_factor))
+            noise = dataclasses.replace(opt.noise, robot_sigma_mm=opt.noise.robot_sigma_mm * np.sqrt(robot_factor),
+                                        robot_sigma_deg=opt.noise.robot_sigma_deg * np.sqrt(robot_factor))
             label += " (noise-calibrated)"
-        graph = build_graph(weights)
+        graph = build_graph(weights, noise)
         values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label)
         history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
@@ -193,6 +206,8 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     residuals = np.concatenate([np.linalg.norm(e, axis=1) for e in match_residuals(observations, values, keys)])
     stats_out = {"rounds": history, "timings_s": timings,
                  "noise_calibration": {"variance_factor": sigma0_sq, "design_effect": kappa,
+                                       "robot_variance_factor": robot_factor,
+                                       "robot_sigma_used": [noise.robot_sigma_mm, noise.robot_sigma_deg],
                                        "method": "scene information scaled by 1/(variance factor x design effect)"
                                        if opt.noise_calibration else "off"},
                  "views_used": len(views), "pairs_used": len(observations),
