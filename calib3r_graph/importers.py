@@ -178,6 +178,27 @@ def choose_convention(mats: dict, cam_T_board: dict):
     return best, results[best][2], {f"{d}, {u}": (r[0], r[1]) for (u, d), r in results.items()}
 
 
+def refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern):
+    """fx, fy, cx, cy from a joint adjustment with the robot poses (pattern-ba with intrinsics).
+
+    A board that is small and far in the image leaves focal length and board distance
+    entangled in a board-only calibration; the robot's metric motion separates them.
+    """
+    from calib3r_graph.dataset import Dataset
+    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.pattern import Detection, opencv_hand_eye, pattern_ba
+
+    cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist))
+    ds = Dataset(Path("."), {"cam0": cam}, {f: base_T_ee[f] for f in corners}, pattern)
+    dets = [Detection(f, cv2.undistortPoints(c.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2), cam_T_board[f], 0.0)
+            for f, c in corners.items()]
+    X0 = opencv_hand_eye(ds, dets, "park")
+    refined = pattern_ba(ds, {"cam0": dets}, NoiseOptions(), {"cam0": X0}, return_intrinsics=True)[1]["cam0"]
+    K2 = K.copy()
+    K2[0, 0], K2[1, 1], K2[0, 2], K2[1, 2] = refined
+    return K2
+
+
 def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
@@ -196,10 +217,12 @@ def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
 
         M[:3, :3] = project_to_so3(M[:3, :3])
         base_T_ee[f] = gtsam.Pose3(M) if direction.startswith("as") else gtsam.Pose3(M).inverse()
-    cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), tuple(float(x) for x in
-                 (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist)))
     pattern = {"type": "checkerboard", "inner_corners": [int(board_used[0]), int(board_used[1])],
                "square_size": float(rec.square_m)}
+    K_board = K.copy()
+    K = refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern)
+    cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), tuple(float(x) for x in
+                 (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist)))
     with staged_directory(dst) as stage:
         (stage / "images" / "cam0").mkdir(parents=True)
         for f, p in rec.images:
@@ -214,7 +237,10 @@ def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
                                              "board_found_in": len(corners)}})
     lines = [f"imported {len(rec.images)} frames of {src} ({fmt}) into {dst}",
              f"  intrinsics from the {board_used[0]}x{board_used[1]} chessboard in {len(corners)} images: "
-             f"fx {K[0, 0]:.1f} fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}, RMS {rms:.3f} px",
+             f"fx {K_board[0, 0]:.1f} fy {K_board[1, 1]:.1f} cx {K_board[0, 2]:.1f} cy {K_board[1, 2]:.1f}, "
+             f"RMS {rms:.3f} px",
+             f"  refined with the robot's metric motion (pattern-ba): fx {K[0, 0]:.1f} fy {K[1, 1]:.1f} "
+             f"cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}",
              f"  robot poses: using '{direction}, {unit}' (AX=XB residual against the board's visual motion, "
              "rotation deg / translation mm):"]
     lines += [f"    {'*' if k == f'{direction}, {unit}' else ' '} {k:42s} {r:8.3f} deg {t:10.2f} mm"

@@ -83,32 +83,63 @@ def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(R), t.ravel())
 
 
-def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100) -> dict:
-    """Joint adjustment; returns {camera: ee_T_cam}. Uses every camera that saw the board."""
+def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100,
+               refine_intrinsics=True, return_intrinsics=False):
+    """Joint adjustment; returns {camera: ee_T_cam}. Uses every camera that saw the board.
+
+    With ``refine_intrinsics`` each camera's fx, fy, cx, cy are adjusted too (the corners are
+    already undistorted): the robot's metric motion separates focal length from board
+    distance, which a board-only calibration cannot do when the board is small and far.
+
+    Solved twice: after the first solve the robot noise is calibrated from the robot
+    factors' residuals (inflated when the arm is noisier than its nominal sigma), as in
+    ``solve``, so an optimistic robot model cannot override the images.
+    """
     obj = board_points(ds.pattern)
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     k_board = gtsam.symbol("b", 0)
     cams = [c for c in detections_by_cam if detections_by_cam[c]]
+    values = gtsam.Values()
     boards = []
     for j, c in enumerate(cams):
-        X = init_ee_T_cam[c]
-        values.insert(gtsam.symbol("e", j), X)
+        values.insert(gtsam.symbol("e", j), init_ee_T_cam[c])
         for d in detections_by_cam[c]:
-            boards.append(ds.base_T_ee[d.frame].compose(X).compose(d.cam_T_board))
+            boards.append(ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]).compose(d.cam_T_board))
     values.insert(k_board, mean_pose(boards))
-    cov_robot = {c: robot_pose_noise_covariance(init_ee_T_cam[c], np.radians(noise.robot_sigma_deg),
-                                                noise.robot_sigma_mm * 1e-3) for c in cams}
-    i = 0
     for j, c in enumerate(cams):
         K = ds.cameras[c].K
-        for d in detections_by_cam[c]:
+        values.insert(gtsam.symbol("k", j), np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+    views = [(j, c, d) for j, c in enumerate(cams) for d in detections_by_cam[c]]
+    for i, (j, c, d) in enumerate(views):
+        values.insert(gtsam.symbol("v", i), ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]))
+
+    def build(robot_scale):
+        graph = gtsam.NonlinearFactorGraph()
+        robot = []
+        for i, (j, c, d) in enumerate(views):
             k_cam = gtsam.symbol("v", i)
-            i += 1
-            values.insert(k_cam, ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]))
-            graph.add(make_pattern_factor(PatternMeasurement(obj, d.uv, K, sigma_px), [k_board, k_cam]))
-            graph.add(factors.make_robot_pose_factor(ds.base_T_ee[d.frame], [gtsam.symbol("e", j), k_cam],
-                                                     gtsam.noiseModel.Gaussian.Covariance(cov_robot[c])))
+            keys = [k_board, k_cam] + ([gtsam.symbol("k", j)] if refine_intrinsics else [])
+            graph.add(make_pattern_factor(PatternMeasurement(obj, d.uv, ds.cameras[c].K, sigma_px), keys))
+            cov = robot_pose_noise_covariance(init_ee_T_cam[c], np.radians(noise.robot_sigma_deg),
+                                              noise.robot_sigma_mm * 1e-3) * robot_scale
+            f = factors.make_robot_pose_factor(ds.base_T_ee[d.frame], [gtsam.symbol("e", j), k_cam],
+                                               gtsam.noiseModel.Gaussian.Covariance(cov))
+            graph.add(f)
+            robot.append(f)
+        return graph, robot
+
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    return {c: result.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
+    graph, robot = build(1.0)
+    values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    chi2 = 2 * sum(f.error(values) for f in robot)
+    robot_scale = max(1.0, chi2 / max(6 * len(views) - 6 * len(cams) - 6, 1))
+    if robot_scale > 1.0:
+        log.info("pattern-ba: robot poses %.1fx noisier than nominal; re-solving", np.sqrt(robot_scale))
+        graph, _ = build(robot_scale)
+        values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    intrinsics = {c: values.atVector(gtsam.symbol("k", j)) for j, c in enumerate(cams)}
+    for c, k in intrinsics.items():
+        if refine_intrinsics:
+            log.info("pattern-ba: %s intrinsics fx %.1f fy %.1f cx %.1f cy %.1f", c, *k)
+    X = {c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
+    return (X, intrinsics) if return_intrinsics else X

@@ -5,7 +5,8 @@ With the board pose ``base_T_board`` and a view's pose ``base_T_cam``, every cor
 
     r_k = W (pi(K, cam_T_board * P_k) - u_k)                    (2 rows per corner, whitened)
 
-Keys: ``[base_T_board (Pose3), base_T_cam (Pose3)]``. Error dimension 2N.
+Keys: ``[base_T_board (Pose3), base_T_cam (Pose3)]`` and optionally the camera's
+intrinsics ``k = [fx, fy, cx, cy]`` (Vector 4), which then replace ``K``. Error dimension 2N.
 """
 
 from dataclasses import dataclass
@@ -26,12 +27,24 @@ class PatternMeasurement:
 
 
 def pattern_error(m: PatternMeasurement, this, values, jacobians):
-    k_board, k_cam = this.keys()
-    board_T_cam = values.atPose3(k_board).between(values.atPose3(k_cam))
-    r, J = _project_one_way(m.corners_board, m.uv, m.K, board_T_cam, 1.0)
+    keys = this.keys()
+    board_T_cam = values.atPose3(keys[0]).between(values.atPose3(keys[1]))
+    K = m.K
+    if len(keys) == 3:
+        fx, fy, cx, cy = values.atVector(keys[2])
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    r, J = _project_one_way(m.corners_board, m.uv, K, board_T_cam, 1.0)
     if jacobians is not None:
         jacobians[0] = J[0].reshape(-1, 6) / m.sigma_px
         jacobians[1] = J[1].reshape(-1, 6) / m.sigma_px
+        if len(keys) == 3:
+            # u = fx x/z + cx, v = fy y/z + cy  ->  normalised coordinates from the residual
+            xn = (r[:, 0] + m.uv[:, 0] - K[0, 2]) / K[0, 0]
+            yn = (r[:, 1] + m.uv[:, 1] - K[1, 2]) / K[1, 1]
+            Jk = np.zeros((len(r), 2, 4))
+            Jk[:, 0, 0], Jk[:, 0, 2] = xn, 1.0
+            Jk[:, 1, 1], Jk[:, 1, 3] = yn, 1.0
+            jacobians[2] = Jk.reshape(-1, 4) / m.sigma_px
     return r.reshape(-1) / m.sigma_px
 
 

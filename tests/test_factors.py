@@ -277,3 +277,17 @@ def test_pattern_factor_jacobians(seed):
     m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), K)
     f = make_pattern_factor(m, [0, 1])
     check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
+
+
+def test_pattern_factor_with_intrinsics_jacobians():
+    from factors.pattern import PatternMeasurement, make_pattern_factor, pattern_error
+
+    rng = np.random.default_rng(3)
+    corners = np.c_[np.mgrid[0:4, 0:3].reshape(2, -1).T * 0.03, np.zeros(12)]
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), np.array([0, 0, 0.5])))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.02))
+    v.insert(2, np.array([510.0, 495.0, 318.0, 244.0]))
+    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.eye(3))
+    f = make_pattern_factor(m, [0, 1, 2])
+    check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
