@@ -20,7 +20,7 @@ import gtsam
 import numpy as np
 
 from calib3r_graph.errors import Calib3rError, SolveError
-from calib3r_graph.geometry import project_to_so3
+from calib3r_graph.geometry import hand_eye_rotation
 from calib3r_graph.predictions import Predictions, split_view_id
 
 log = logging.getLogger(__name__)
@@ -58,8 +58,7 @@ def two_stage_hand_eye(trajectory: dict, base_T_ee: dict, scales=np.logspace(-4,
                if np.linalg.norm(gtsam.Rot3.Logmap(y.rotation())) > np.radians(1)]
         if len(rot) < 2:
             raise SolveError(f"{cam}: fewer than two rotating motions in the trajectory")
-        al, be = map(np.array, zip(*rot))
-        R_X = project_to_so3(np.einsum("ni,nj->ij", al, be))
+        R_X, _ = hand_eye_rotation(*map(np.array, zip(*rot)))
         M = np.vstack([x.rotation().matrix() - np.eye(3) for x in A])
         tA = np.concatenate([x.translation() for x in A])
         RtB = np.concatenate([R_X @ y.translation() for y in B])

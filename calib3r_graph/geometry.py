@@ -78,6 +78,15 @@ def project_to_so3(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+def hand_eye_rotation(alphas: np.ndarray, betas: np.ndarray) -> tuple[np.ndarray, float]:
+    """R_X from the rotation axes (angle-scaled) of AX = XB: alpha_i = R_X beta_i (Wahba, by Kabsch).
+
+    Returns R_X and the mean axis residual in degrees.
+    """
+    R = project_to_so3(np.einsum("ni,nj->ij", alphas, betas))
+    return R, float(np.degrees(np.mean(np.linalg.norm(alphas - betas @ R.T, axis=1))))
+
+
 def mean_pose(poses) -> gtsam.Pose3:
     """Chordal mean rotation and mean translation."""
     R = project_to_so3(sum(p.rotation().matrix() for p in poses))

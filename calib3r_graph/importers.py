@@ -144,20 +144,25 @@ def calibrate_intrinsics(corners: dict, board, square, size):
     return K, dist.ravel()[:4], rms, poses
 
 
+def apply_convention(M, unit: str, direction: str) -> gtsam.Pose3:
+    """A published 4x4 as base_T_ee in metres under a convention (unit m|mm, 'as given...'|'inverted...')."""
+    from calib3r_graph.geometry import project_to_so3
+
+    M = np.array(M, dtype=float)
+    M[:3, 3] *= 1e-3 if unit == "mm" else 1.0
+    M[:3, :3] = project_to_so3(M[:3, :3])  # published matrices carry rounding
+    return gtsam.Pose3(M) if direction.startswith("as") else gtsam.Pose3(M).inverse()
+
+
 def choose_convention(mats: dict, cam_T_board: dict):
     """(name, {frame: base_T_ee Pose3 in metres}, residuals) of the convention that makes AX = XB hold best."""
-    from calib3r_graph.geometry import project_to_so3
+    from calib3r_graph.geometry import hand_eye_rotation
 
     frames = sorted(cam_T_board)
     results = {}
-    for unit, scale in (("m", 1.0), ("mm", 1e-3)):
+    for unit in ("m", "mm"):
         for direction in ("as given (base_T_ee)", "inverted (file holds ee_T_base)"):
-            E = {}
-            for f in frames:
-                M = np.array(mats[f], dtype=float)
-                M[:3, 3] *= scale
-                M[:3, :3] = project_to_so3(M[:3, :3])
-                E[f] = gtsam.Pose3(M) if direction.startswith("as") else gtsam.Pose3(M).inverse()
+            E = {f: apply_convention(mats[f], unit, direction) for f in frames}
             C = {f: cam_T_board[f].inverse() for f in frames}  # board_T_cam: camera in the board frame
             pairs = [(a, b) for i, a in enumerate(frames) for b in frames[i + 1:]]
             A = [E[a].between(E[b]) for a, b in pairs]
@@ -166,9 +171,7 @@ def choose_convention(mats: dict, cam_T_board: dict):
                    if np.linalg.norm(gtsam.Rot3.Logmap(y.rotation())) > np.radians(2)]
             if len(rot) < 2:
                 raise InputError("robot poses", "fewer than two rotating robot motions: the convention cannot be checked")
-            al, be = map(np.array, zip(*rot))
-            R_X = project_to_so3(np.einsum("ni,nj->ij", al, be))
-            rot_res = float(np.degrees(np.mean(np.linalg.norm(al - be @ R_X.T, axis=1))))
+            R_X, rot_res = hand_eye_rotation(*map(np.array, zip(*rot)))
             M_ = np.vstack([x.rotation().matrix() - np.eye(3) for x in A])
             rhs = np.concatenate([R_X @ y.translation() - x.translation() for x, y in zip(A, B)])
             t, *_ = np.linalg.lstsq(M_, rhs, rcond=None)
@@ -207,16 +210,9 @@ def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
     corners, board_used, size = detect_all(rec, progress)
     K, dist, rms, cam_T_board = calibrate_intrinsics(corners, board_used, rec.square_m, size)
     mats = {f: m for (f, _), m in zip(rec.images, rec.matrices)}
-    (unit, direction), base_T_ee_board, residuals = choose_convention(mats, cam_T_board)
-    # Apply the chosen convention to every frame (also those where the board was not found).
-    base_T_ee = {}
-    for f, M in mats.items():
-        M = np.array(M, dtype=float)
-        M[:3, 3] *= 1e-3 if unit == "mm" else 1.0
-        from calib3r_graph.geometry import project_to_so3
-
-        M[:3, :3] = project_to_so3(M[:3, :3])
-        base_T_ee[f] = gtsam.Pose3(M) if direction.startswith("as") else gtsam.Pose3(M).inverse()
+    (unit, direction), _, residuals = choose_convention(mats, cam_T_board)
+    # The chosen convention for every frame (also those where the board was not found).
+    base_T_ee = {f: apply_convention(M, unit, direction) for f, M in mats.items()}
     pattern = {"type": "checkerboard", "inner_corners": [int(board_used[0]), int(board_used[1])],
                "square_size": float(rec.square_m)}
     K_board = K.copy()

@@ -22,7 +22,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
 
 from calib3r_graph.errors import InputError, SolveError
-from calib3r_graph.geometry import mean_pose, project_to_so3, ransac_sim3, rotation_angle_deg
+from calib3r_graph.geometry import hand_eye_rotation, mean_pose, project_to_so3, ransac_sim3
 from calib3r_graph.predictions import split_view_id
 
 log = logging.getLogger(__name__)
@@ -102,13 +102,6 @@ def _motion_pairs(comp_views, max_pairs, rng):
     return pairs
 
 
-def _wahba(alphas, betas):
-    """R minimising sum |alpha - R beta|^2; and the mean residual angle in degrees."""
-    R = project_to_so3(np.einsum("ni,nj->ij", alphas, betas))
-    res = np.linalg.norm(alphas - betas @ R.T, axis=1)
-    return R, float(np.degrees(np.mean(res)))
-
-
 def hand_eye_closed_form(comps, base_T_ee, robot_file="robot_poses.csv", max_pairs=4000, seed=0):
     """Every camera's ee_T_cam and every component's metric scale (metres per visual unit)."""
     rng = np.random.default_rng(seed)
@@ -134,8 +127,8 @@ def hand_eye_closed_form(comps, base_T_ee, robot_file="robot_poses.csv", max_pai
             raise SolveError(f"camera {cam}: fewer than two robot motions with rotation between co-visible "
                              "views; add poses that rotate the flange about different axes")
         alphas, alphas_inv, betas = map(np.array, (alphas, alphas_inv, betas))
-        R, res = _wahba(alphas, betas)
-        _, res_inv = _wahba(alphas_inv, betas)
+        R, res = hand_eye_rotation(alphas, betas)
+        _, res_inv = hand_eye_rotation(alphas_inv, betas)
         log.info("camera %s: hand-eye rotation from %d motions, axis residual %.3f deg (inverted poses: %.3f deg)",
                  cam, len(betas), res, res_inv)
         if res > 1.0 and res_inv < 0.3 * res:

@@ -49,7 +49,8 @@ def calibration_json(sol, predictions_name: str) -> dict:
             "covariance_convention": "tangent of ee_T_cam, right perturbation T = T_hat Exp([w; v]), "
                                      "order [wx, wy, wz, vx, vy, vz] (rad, m); sigma_ee_frame rotated into the ee frame",
             "metric_scale_meaning": "metres per unit of the frontend's depth (geometric mean over the camera's views)",
-            "predictions": predictions_name, "views_dropped": sol.views_dropped, "solver": sol.stats}
+            "predictions": predictions_name, "views_dropped": sol.views_dropped,
+            "observability": sol.diagnostics, "solver": sol.stats}
 
 
 def trajectory_csv(sol) -> str:
@@ -107,6 +108,10 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
                   f"        sigma t = [{rep['x_mm']:.2f} {rep['y_mm']:.2f} {rep['z_mm']:.2f}] mm   "
                   f"sigma r = [{rep['rx_deg']:.3f} {rep['ry_deg']:.3f} {rep['rz_deg']:.3f}] deg   "
                   f"metric scale {lam:.5g} ± {lam_sigma:.2g} m/unit"]
+    for c, X in sol.ee_T_cam.items():
+        corr = uncertainty_report(X, sol.covariance[c])["strongest_correlations"][0]
+        lines.append(f"  {c}: strongest correlation {corr['axes'][0]}-{corr['axes'][1]} {corr['rho']:+.2f}")
+    lines += [f"  ! {m}" for m in sol.diagnostics]
     tm = sol.stats["timings_s"]
     lines.append(f"  time: init {tm['initialisation']:.1f} s, optimisation {tm['optimisation']:.1f} s, "
                  f"covariance {tm['covariance']:.1f} s; LM iterations "

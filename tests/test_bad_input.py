@@ -1,7 +1,6 @@
 """Bad input: one line naming the file and what is wrong, a non-zero exit, no traceback,
 and nothing the user had is lost."""
 
-import json
 import shutil
 
 import numpy as np
@@ -100,8 +99,6 @@ def test_millimetres_declared_as_metres(sample_copy, tmp_path, capsys):
 
 
 def test_inverted_pose_direction(sample_copy, tmp_path, capsys):
-    import gtsam
-
     from calib3r_graph.dataset import read_robot_poses, write_robot_poses
 
     poses = read_robot_poses(sample_copy / "robot_poses.csv")

@@ -101,3 +101,33 @@ def test_wrong_grid_is_a_clear_error(simulated, tmp_path):
     np.savez(path, **z)
     with pytest.raises(InputError, match="depth_conf"):
         convert("vggt", path, load_dataset(root))
+
+
+def test_pairwise_pointmaps_are_aggregated_by_confidence():
+    from calib3r_graph.frontends.common import aggregate_pointmaps
+
+    d = np.array([[[1.0, 2.0]], [[3.0, 0.0]], [[np.nan, 4.0]]])  # 3 pairwise predictions of a 1x2 view
+    c = np.array([[[1.0, 1.0]], [[3.0, 5.0]], [[2.0, 1.0]]])
+    depth, conf = aggregate_pointmaps(d, c)
+    assert depth[0, 0] == pytest.approx((1 * 1 + 3 * 3) / 4)  # the NaN prediction carries no weight
+    assert depth[0, 1] == pytest.approx((2 * 1 + 4 * 1) / 2)  # nor does the zero depth
+    assert conf[0, 0] == pytest.approx(4 / 3) and conf[0, 1] == pytest.approx(2 / 3)
+
+
+@pytest.mark.slow
+def test_dust3r_export_with_pairwise_predictions(simulated, tmp_path):
+    """An export with two pairwise predictions per view, one of them 5 % off with low confidence."""
+    import shutil
+
+    root = tmp_path / "d"
+    shutil.copytree(simulated(seed=41, frames=10), root)
+    path = export_like("dust3r", root, np.random.default_rng(0))
+    z = dict(np.load(path))
+    z["depthmaps"] = np.stack([z["depthmaps"], z["depthmaps"] * 1.05], axis=1)
+    z["conf"] = np.stack([z["conf"] * 99, z["conf"]], axis=1)
+    np.savez(path, **z)
+    ds = load_dataset(root)
+    preds = load_predictions(root, convert("dust3r", path, ds), ds.cameras, set(ds.frames))
+    sol = solve(ds, preds, SolveOptions())
+    e = hand_eye_errors(sol.ee_T_cam, load_ground_truth(root))["cam0"]
+    assert e["e_t_m"] < 2e-3 and np.degrees(e["e_theta_rad"]) < 0.15, e

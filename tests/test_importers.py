@@ -4,7 +4,6 @@ variants: bmp, im_XX names, misspelt square-size file, inverted poses in mm), th
 import shutil
 
 import cv2
-import gtsam
 import numpy as np
 import pytest
 

@@ -114,8 +114,6 @@ def test_sample_dataset_via_cli(tmp_path, capsys):
         truth = np.exp(np.mean([np.log(v["metres_per_depth_unit"]) for k, v in gt["views"].items()
                                 if k.startswith(cam + "/")]))
         assert c["metric_scale"] == pytest.approx(truth, rel=0.01)
-    import gtsam
-
     errs = hand_eye_errors({c: np.array(v["T_ee_cam"]) for c, v in calib["cameras"].items()}, gt)
     assert_accuracy(errs, mm=2.0, deg=0.15)
     rows = (out / "trajectory.csv").read_text().splitlines()

@@ -72,3 +72,14 @@ def covisibility_edges(scores: dict, views, k: int, same_frame_edges=True, min_s
     if same_frame_edges:
         edges.update(e for e, s in scores.items() if s >= min_score and e[0].split("/")[1] == e[1].split("/")[1])
     return sorted(edges)
+
+
+def aggregate_pointmaps(depths: np.ndarray, confs: np.ndarray):
+    """Canonical depth of a view from its P pairwise predictions (Calib3R eq. 1):
+    ``d = sum_e C_e d_e / sum_e C_e`` per pixel; the confidence is the mean of the C_e.
+    depths, confs: (P, H, W); invalid entries (depth <= 0 or non-finite) carry no weight."""
+    depths = np.asarray(depths, dtype=np.float64)
+    w = np.where(np.isfinite(depths) & (depths > 0), np.maximum(np.nan_to_num(confs), 0), 0.0)
+    total = w.sum(0)
+    depth = np.where(total > 0, (w * np.nan_to_num(depths)).sum(0) / np.maximum(total, 1e-300), 0.0)
+    return depth.astype(np.float32), (total / len(depths)).astype(np.float32)

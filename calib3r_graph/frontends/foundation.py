@@ -7,7 +7,8 @@ Supported files (see the README for the export snippets):
   ``depth_conf`` (S, H, W), ``extrinsic`` (S, 3, 4) camera-from-world, ``intrinsic``
   (S, 3, 3), optionally ``image_names`` (S,) — else give ``--order``.
 * **DUSt3R** global alignment / **MASt3R** sparse GA, exported to an npz with
-  ``image_names`` (N,), ``depthmaps`` (N, H, W), ``conf`` (N, H, W), ``cam2w`` (N, 4, 4),
+  ``image_names`` (N,), ``depthmaps`` (N, H, W) — or (N, P, H, W) with P pairwise
+  predictions per view, aggregated by confidence (eq. 1) — ``conf`` (same shape), ``cam2w`` (N, 4, 4),
   ``focals`` (N,) and ``pp`` (N, 2); MASt3R's own correspondences may be added in the
   pairs.npz layout (``view_a``, ``view_b``, ``offsets``, ``uv_a``, ``uv_b``, ``match_conf``).
 
@@ -25,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.frontends.common import covisibility_edges
+from calib3r_graph.frontends.common import aggregate_pointmaps, covisibility_edges
 from calib3r_graph.predictions import PairMatches, ViewPrediction, save_predictions, view_id
 
 log = logging.getLogger(__name__)
@@ -138,6 +139,9 @@ def convert(kind: str, path, ds, name=None, order=None, vggt_mode="crop", neighb
             if k not in z:
                 raise InputError(path, f"missing array '{k}' (see the README's {kind} export snippet)", k)
         depth, conf, cam2w = z["depthmaps"], z["conf"], z["cam2w"].astype(np.float64)
+        if depth.ndim == 4:  # (N, P, H, W): P pairwise predictions per view -> canonical (eq. 1)
+            agg = [aggregate_pointmaps(d, c) for d, c in zip(depth, conf)]
+            depth, conf = np.stack([a[0] for a in agg]), np.stack([a[1] for a in agg])
         f, pp = np.ravel(z["focals"]).astype(np.float64), z["pp"].astype(np.float64)
         K_model = np.array([[[fi, 0, p[0]], [0, fi, p[1]], [0, 0, 1]] for fi, p in zip(f, pp)])
         grid_of = lambda cam: dust3r_grid(cam.width, cam.height)

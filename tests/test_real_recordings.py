@@ -1,0 +1,41 @@
+"""The public real recordings in ../shared/real (present beside CI's checkout, absent in a
+user's clone: then these tests skip). Importing must find each file's pose convention from
+the images and calibrate sensible intrinsics."""
+
+import numpy as np
+import pytest
+
+from calib3r_graph.dataset import load_dataset
+from calib3r_graph.importers import import_recording
+from tests.conftest import SHARED
+
+REAL = SHARED / "real"
+needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="../shared/real (public recordings) is not beside this checkout")
+
+
+@needs_real
+@pytest.mark.slow
+def test_rwhe_kuka_import(tmp_path):
+    report = import_recording("rwhe", REAL / "rwhe_kuka_1", tmp_path / "rwhe", (28, 17), progress=False)
+    assert "* as given (base_T_ee), m " in report
+    ds = load_dataset(tmp_path / "rwhe")
+    assert len(ds.frames) == 30
+    cam = ds.cameras["cam0"]
+    assert (cam.width, cam.height) == (1928, 1208)
+    assert 1900 < cam.params[0] < 2200 and abs(cam.params[2] - 964) < 40
+    # twelve poses are pure translations with the orientation of pose 1
+    R0 = ds.base_T_ee[ds.frames[0]].rotation().matrix()
+    same = sum(np.allclose(ds.base_T_ee[f].rotation().matrix(), R0, atol=1e-4) for f in ds.frames)
+    assert same >= 12
+
+
+@needs_real
+@pytest.mark.slow
+def test_tabb_import_detects_inverted_millimetres(tmp_path):
+    report = import_recording("tabb", REAL / "tabb_ds1", tmp_path / "tabb", progress=False)
+    assert "* inverted (file holds ee_T_base), mm" in report
+    ds = load_dataset(tmp_path / "tabb")
+    assert len(ds.frames) == 88 and ds.pattern["inner_corners"] == [8, 6]
+    assert abs(ds.pattern["square_size"] - 0.0285) < 1e-9
+    reach = max(np.linalg.norm(p.translation()) for p in ds.base_T_ee.values())
+    assert 0.3 < reach < 1.5  # metres, a Denso VS-6577's workspace
