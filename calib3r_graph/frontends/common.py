@@ -79,7 +79,9 @@ def aggregate_pointmaps(depths: np.ndarray, confs: np.ndarray):
     ``d = sum_e C_e d_e / sum_e C_e`` per pixel; the confidence is the mean of the C_e.
     depths, confs: (P, H, W); invalid entries (depth <= 0 or non-finite) carry no weight."""
     depths = np.asarray(depths, dtype=np.float64)
-    w = np.where(np.isfinite(depths) & (depths > 0), np.maximum(np.nan_to_num(confs), 0), 0.0)
+    valid = np.isfinite(depths) & (depths > 0)
+    w = np.where(valid, np.maximum(np.nan_to_num(confs, nan=0.0, posinf=0.0), 0), 0.0)
+    d = np.where(valid, depths, 0.0)
     total = w.sum(0)
-    depth = np.where(total > 0, (w * np.nan_to_num(depths)).sum(0) / np.maximum(total, 1e-300), 0.0)
+    depth = (w * d).sum(0) / np.where(total > 0, total, 1.0)
     return depth.astype(np.float32), (total / len(depths)).astype(np.float32)
