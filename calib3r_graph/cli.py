@@ -49,6 +49,10 @@ def cmd_solve(args):
     from calib3r_graph.results import write_results
 
     ds, preds, opt, sol = _solve_dataset(args)
+    if args.jackknife:
+        from calib3r_graph.uncertainty import jackknife
+
+        sol.stats["jackknife"] = jackknife(ds, preds, opt, sol, progress=not args.quiet)
     out = Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name
     summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud)
     print(summary, end="")
@@ -246,6 +250,8 @@ def build_parser():
     s = sub.add_parser("solve", help="joint hand-eye calibration and metric reconstruction of a dataset")
     _add_solve_args(s)
     s.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
+    s.add_argument("--jackknife", action="store_true",
+                   help="cross-check the covariance with leave-one-pose-out solves (n extra solves)")
     s.set_defaults(func=cmd_solve)
 
     pl = sub.add_parser("plan", help="rank candidate robot poses by expected information gain")

@@ -112,6 +112,10 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
         corr = uncertainty_report(X, sol.covariance[c])["strongest_correlations"][0]
         lines.append(f"  {c}: strongest correlation {corr['axes'][0]}-{corr['axes'][1]} {corr['rho']:+.2f}")
     lines += [f"  ! {m}" for m in sol.diagnostics]
+    for c, jk in sol.stats.get("jackknife", {}).items():
+        r = jk["ratio_to_reported"]
+        lines.append(f"  {c}: jackknife ({jk['solves']} solves) / reported sigma: rotation "
+                     f"{r[0]:.1f} {r[1]:.1f} {r[2]:.1f}, translation {r[3]:.1f} {r[4]:.1f} {r[5]:.1f}")
     tm = sol.stats["timings_s"]
     lines.append(f"  time: init {tm['initialisation']:.1f} s, optimisation {tm['optimisation']:.1f} s, "
                  f"covariance {tm['covariance']:.1f} s; LM iterations "

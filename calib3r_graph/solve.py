@@ -40,6 +40,7 @@ class SolveOptions:
     irls_rounds: int = 2
     noise_calibration: bool = True  # variance factor x design effect on the scene factors (uncertainty.py)
     init: str = "predictions"  # "predictions": pairwise Sim(3) + spanning tree; "colmap": the frontend's poses
+    progress: bool = True  # LM iterations on stderr
     max_iterations: int = 50
     reprojection: bool = False  # see factors/reprojection.py: double-counts the match noise
     seed: int = 0
@@ -65,7 +66,7 @@ class Solution:
     scene_weight_scale: float = 1.0
 
 
-def _lm(graph, values, max_iterations, label):
+def _lm(graph, values, max_iterations, label, progress=True):
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-6)
@@ -76,7 +77,8 @@ def _lm(graph, values, max_iterations, label):
         print(f"[{label}] iteration {it:2d}: cost {before:.6g} -> {after:.6g}  ({time.perf_counter() - t0:.1f} s)",
               file=sys.stderr, flush=True)
 
-    params.iterationHook = hook
+    if progress:
+        params.iterationHook = hook
     opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = opt.optimize()
     return result, opt.iterations(), graph.error(values), graph.error(result)
@@ -179,7 +181,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                                         robot_sigma_deg=opt.noise.robot_sigma_deg * np.sqrt(robot_factor))
             label += " (noise-calibrated)"
         graph = build_graph(weights, noise)
-        values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label)
+        values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label, opt.progress)
         history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
         if rnd < opt.irls_rounds:

@@ -79,3 +79,24 @@ def test_plan_prefers_informative_candidates(tmp_path):
     assert ranked[0].frame == "near"
     assert by["near"].information_gain_nats > 0.05 and by["near"].visible_points > 100
     assert by["away"].information_gain_nats == pytest.approx(0.0, abs=1e-3)
+
+
+@pytest.mark.slow
+def test_jackknife_agrees_with_the_reported_covariance_on_simulated_data(simulated):
+    """Leave-one-pose-out spread vs the reported sigma: within a factor ~2.5 (a jackknife over
+    12 poses is itself noisy), and written per camera."""
+    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.predictions import load_predictions
+    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.uncertainty import jackknife
+
+    root = simulated(seed=61, frames=12)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    opt = SolveOptions(progress=False)
+    sol = solve(ds, preds, opt)
+    jk = jackknife(ds, preds, opt, sol, progress=False)["cam0"]
+    assert jk["solves"] == 12
+    ratio = np.array(jk["ratio_to_reported"])
+    assert np.all(ratio > 0.3) and np.all(ratio < 2.5), ratio
+    assert 0.5 < np.exp(np.mean(np.log(ratio))) < 2.0
