@@ -32,35 +32,23 @@ def assert_accuracy(errs, mm, deg):
         assert np.degrees(e["e_theta_rad"]) <= deg, f"{cam}: e_r {np.degrees(e['e_theta_rad']):.3f} deg > {deg} deg"
 
 
-@pytest.mark.slow
-def test_one_camera_25_poses(simulated):
-    root = simulated(seed=11, frames=25)
-    _, _, sol = solve_dataset(root)
-    assert_accuracy(errors(root, sol), mm=2.0, deg=0.15)
+GOALS = [  # simulator options, goal (mm, deg) for every camera — the accuracy goals
+    pytest.param(dict(seed=11, frames=25), 2.0, 0.15, id="1 camera, 25 poses"),
+    pytest.param(dict(seed=12, frames=20, cameras=3), 3.0, 0.2, id="3 cameras, 20 poses"),
+    pytest.param(dict(seed=13, frames=6), 8.0, 0.5, id="6 poses"),
+    pytest.param(dict(seed=14, frames=12, unit="mm"), 2.0, 0.15, id="robot poses in mm"),
+]
 
 
 @pytest.mark.slow
-def test_three_cameras_20_poses(simulated):
-    root = simulated(seed=12, frames=20, cameras=3)
-    _, _, sol = solve_dataset(root)
-    errs = errors(root, sol)
-    assert set(errs) == {"cam0", "cam1", "cam2"}
-    assert_accuracy(errs, mm=3.0, deg=0.2)
-
-
-@pytest.mark.slow
-def test_six_poses(simulated):
-    root = simulated(seed=13, frames=6)
-    _, _, sol = solve_dataset(root)
-    assert_accuracy(errors(root, sol), mm=8.0, deg=0.5)
-
-
-@pytest.mark.slow
-def test_robot_poses_in_millimetres(simulated):
-    root = simulated(seed=14, frames=12, unit="mm")
+@pytest.mark.parametrize("sim,mm,deg", GOALS)
+def test_accuracy_goals(simulated, sim, mm, deg):
+    root = simulated(**sim)
     ds, _, sol = solve_dataset(root)
-    assert ds.robot_unit == "mm"
-    assert_accuracy(errors(root, sol), mm=2.0, deg=0.15)
+    assert ds.robot_unit == sim.get("unit", "m")
+    errs = errors(root, sol)
+    assert set(errs) == {f"cam{j}" for j in range(sim.get("cameras", 1))}
+    assert_accuracy(errs, mm=mm, deg=deg)
 
 
 def test_depth_correction_is_what_beats_distortion(simulated):
