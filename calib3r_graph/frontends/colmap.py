@@ -85,6 +85,23 @@ def run_colmap(ds, work: Path, max_features=2048, progress=True):
     return rec, names
 
 
+def triangulation_angles(rec, point_ids, centres) -> np.ndarray:
+    """Largest angle (rad) between the viewing rays of each 3D point's track.
+
+    Depth from triangulation is only as good as this angle: far points seen from nearby
+    cameras have small angles and uncertain depth, and get low confidence.
+    """
+    out = np.zeros(len(point_ids))
+    for k, pid in enumerate(point_ids):
+        p = rec.point3D(pid)
+        rays = np.array([centres[el.image_id] for el in p.track.elements if el.image_id in centres]) - p.xyz
+        if len(rays) < 2:
+            continue
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        out[k] = np.arccos(np.clip((rays @ rays.T).min(), -1.0, 1.0))
+    return out
+
+
 def _undistort(camera, uv):
     if not np.any(camera.dist):
         return uv
@@ -97,6 +114,7 @@ def predict_colmap(ds, name="colmap", neighbours=6, max_features=2048, progress=
     try:
         rec, names = run_colmap(ds, work, max_features, progress)
         views, poses, obs = {}, {}, {}  # obs: view -> {point3D_id: uv}
+        centres = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
         for image_id in rec.reg_image_ids():
             img = rec.image(image_id)
             vid = names.get(img.name)
@@ -114,7 +132,8 @@ def predict_colmap(ds, name="colmap", neighbours=6, max_features=2048, progress=
             ids = np.array([p.point3D_id for p in pts2d])
             xyz = np.array([rec.point3D(i).xyz for i in ids])
             z = (xyz @ T[:3, :3].T + T[:3, 3])[:, 2]
-            track = np.array([rec.point3D(i).track.length() for i in ids])
+            # Confidence: full at >= 5 degrees of triangulation angle, less for far/narrow tracks.
+            angle_conf = np.clip(triangulation_angles(rec, ids, centres) / np.radians(5.0), 0.05, 1.0)
             depth = np.zeros((cam.height, cam.width), np.float32)
             conf = np.zeros_like(depth)
             # Splat each track's depth onto the 2x2 pixels around its keypoint, so bilinear
@@ -124,7 +143,7 @@ def predict_colmap(ds, name="colmap", neighbours=6, max_features=2048, progress=
             for dx in (0, 1):
                 for dy in (0, 1):
                     depth[y0[ok] + dy, x0[ok] + dx] = z[ok]
-                    conf[y0[ok] + dy, x0[ok] + dx] = np.minimum(1.0, track[ok] / 4.0)
+                    conf[y0[ok] + dy, x0[ok] + dx] = angle_conf[ok]
             views[vid] = ViewPrediction(depth, conf, cam.K)
             obs[vid] = {int(i): u for i, u, good in zip(ids, uv, ok) if good}
         ids = sorted(views)
