@@ -107,8 +107,11 @@ def cmd_plan(args):
     from calib3r_graph.output import atomic_write_json
     from calib3r_graph.plan import rank_candidates
 
+    from calib3r_graph.dataset import load_dataset
+
+    unit = load_dataset(args.dataset, skip_missing=args.skip_missing).robot_unit
+    candidates = read_robot_poses(Path(args.candidates), unit, "the --candidates file")  # fail before solving
     ds, preds, opt, sol = _solve_dataset(args)
-    candidates = read_robot_poses(Path(args.candidates), ds.robot_unit)
     ranked = rank_candidates(ds, preds, sol, opt.noise, candidates)
     t_now, r_now = max(np.sqrt(np.linalg.eigvalsh(np.asarray(c)[3:, 3:])[-1]) * 1e3 for c in sol.covariance.values()), \
         max(np.degrees(np.sqrt(np.linalg.eigvalsh(np.asarray(c)[:3, :3])[-1])) for c in sol.covariance.values())

@@ -181,10 +181,10 @@ def _validate_pattern(pattern, path):
         raise InputError(path, "square_size must be a positive number of metres", "pattern.square_size")
 
 
-def read_robot_poses(path: Path, unit: str = "m") -> dict:
-    """``robot_poses.csv`` -> {frame: base_T_ee Pose3 in metres}, strictly validated."""
+def read_robot_poses(path: Path, unit: str = "m", role: str = "named by dataset.yaml robot.poses") -> dict:
+    """``robot_poses.csv`` (or a file in its format) -> {frame: base_T_ee Pose3 in metres}, strictly validated."""
     if not path.is_file():
-        raise InputError(path, "missing (named by dataset.yaml robot.poses)")
+        raise InputError(path, f"missing ({role})")
     try:
         text = path.read_text()
     except UnicodeDecodeError:

@@ -122,8 +122,10 @@ def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise
         graph.add(factors.make_match3d_factor(m, k3d))
         if reprojection:
             W2 = np.eye(2)[None] * (np.sqrt(w) / noise.pixel_sigma_px)[:, None, None]
-            m = factors.ReprojectionMeasurement(o.pts_a, o.pts_b, o.uv_a, o.uv_b, Ks[o.view_a], Ks[o.view_b], W2)
-            graph.add(factors.make_reprojection_factor(m, k))
+            basis = (o.basis_a, o.basis_b) if noise.depth_correction_sigma > 0 else (None, None)
+            m = factors.ReprojectionMeasurement(o.pts_a, o.pts_b, o.uv_a, o.uv_b, Ks[o.view_a], Ks[o.view_b], W2,
+                                                *basis)
+            graph.add(factors.make_reprojection_factor(m, k3d))
 
 
 def add_robot_factors(graph, keys, views, base_T_ee, ee_T_cam_init, noise: NoiseOptions):

@@ -291,3 +291,25 @@ def test_pattern_factor_with_intrinsics_jacobians():
     m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.eye(3))
     f = make_pattern_factor(m, [0, 1, 2])
     check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
+
+
+def test_reprojection_with_depth_correction_jacobians():
+    from factors.match3d import depth_correction_basis
+
+    rng = np.random.default_rng(4)
+    n = 5
+    uv_a, K_a, pa = random_points(rng, n)
+    uv_b, K_b, pb = random_points(rng, n)
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(2, 1.05)
+    v.insert(3, 0.95)
+    v.insert(4, rng.normal(size=5) * 0.03)
+    v.insert(5, rng.normal(size=5) * 0.03)
+    m = factors.ReprojectionMeasurement(pa, pb, uv_a, uv_b, K_a, K_b, np.eye(2)[None].repeat(n, 0),
+                                        depth_correction_basis(uv_a, 640, 480), depth_correction_basis(uv_b, 640, 480))
+    f = factors.make_reprojection_factor(m, [0, 1, 2, 3, 4, 5], compress=False)
+    check_factor(lambda fac, vals, H: factors.reprojection_error(m, fac, vals, H), f, v, atol=1e-4)
+    comp = factors.make_reprojection_factor(m, [0, 1, 2, 3, 4, 5])
+    assert comp.error(v) == pytest.approx(f.error(v), rel=1e-10)

@@ -118,3 +118,10 @@ def test_sample_dataset_via_cli(tmp_path, capsys):
     near_table = pts[np.abs(pts[:, 2]) < 0.01]
     assert len(near_table) > 0.2 * len(pts)
     assert np.median(np.abs(near_table[:, 2])) < 1.5e-3
+
+
+def test_reprojection_option_keeps_the_accuracy():
+    """--reprojection adds the 2D factors (with the same depth correction as the 3D ones)."""
+    root = SAMPLE
+    _, _, sol = solve_dataset(root, reprojection=True)
+    assert_accuracy(errors(root, sol), mm=2.0, deg=0.15)

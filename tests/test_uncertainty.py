@@ -100,3 +100,27 @@ def test_jackknife_agrees_with_the_reported_covariance_on_simulated_data(simulat
     ratio = np.array(jk["ratio_to_reported"])
     assert np.all(ratio > 0.3) and np.all(ratio < 2.5), ratio
     assert 0.5 < np.exp(np.mean(np.log(ratio))) < 2.0
+
+
+@pytest.mark.slow
+def test_plan_cli(tmp_path, capsys):
+    import json
+
+    from calib3r_graph.cli import main
+    from calib3r_graph.dataset import read_robot_poses, write_robot_poses
+    from tests.conftest import SAMPLE
+
+    bad = tmp_path / "bad.csv"
+    bad.write_text("frame,x\n")
+    assert main(["plan", str(SAMPLE), "--candidates", str(bad), "--out", str(tmp_path / "o")]) == 3
+    assert "bad.csv: row 1: header" in capsys.readouterr().err
+    poses = read_robot_poses(SAMPLE / "robot_poses.csv")
+    cands = {"c1": poses["0001"].compose(gtsam.Pose3(gtsam.Rot3.Rz(0.3), np.zeros(3))),
+             "c2": poses["0005"].compose(gtsam.Pose3(gtsam.Rot3.Rx(0.2), np.array([0.02, 0, 0])))}
+    good = tmp_path / "cands.csv"
+    write_robot_poses(good, cands)
+    assert main(["-q", "plan", str(SAMPLE), "--candidates", str(good), "--out", str(tmp_path / "o")]) == 0
+    ranking = json.loads((tmp_path / "o" / "plan.json").read_text())["ranking"]
+    assert {r["frame"] for r in ranking} == {"c1", "c2"}
+    gains = [r["information_gain_nats"] for r in ranking]
+    assert gains == sorted(gains, reverse=True) and gains[0] > 0
