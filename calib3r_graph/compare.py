@@ -22,6 +22,7 @@ import numpy as np
 from calib3r_graph.errors import Calib3rError, SolveError
 from calib3r_graph.geometry import hand_eye_rotation
 from calib3r_graph.predictions import Predictions, split_view_id
+from calib3r_graph.results import uncertainty_report
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,8 @@ def two_stage_hand_eye(trajectory: dict, base_T_ee: dict, scales=np.logspace(-4,
 
 
 def run_method(name, ds, preds, noise, frames=None, detections=None):
-    """{camera: ee_T_cam} of one method on the given frames (all if None).
+    """({camera: ee_T_cam}, {camera: 6x6 covariance}) of one method on the given frames (all if
+    None); the covariance is empty for methods that do not estimate one.
 
     ``detections``: a dict shared between calls, so the board is detected once per frame set.
     """
@@ -97,16 +99,17 @@ def run_method(name, ds, preds, noise, frames=None, detections=None):
             detections[("seconds",) + key] = time.perf_counter() - t
         dets = detections[key]
         if name != "pattern-ba":
-            return {c: pattern.opencv_hand_eye(sub, d, name) for c, d in dets.items() if len(d) >= 3}
+            return {c: pattern.opencv_hand_eye(sub, d, name) for c, d in dets.items() if len(d) >= 3}, {}
         init = {c: pattern.opencv_hand_eye(sub, d, "park") for c, d in dets.items() if len(d) >= 3}
         if not init:
             raise SolveError("the board is not found in enough images")
-        return pattern.pattern_ba(sub, {c: dets[c] for c in init}, noise, init)
+        res = pattern.pattern_ba(sub, {c: dets[c] for c in init}, noise, init)
+        return res.ee_T_cam, res.covariance
     if name == "jcr-colmap":
         from calib3r_graph.frontends.colmap import colmap_trajectory
 
         traj = colmap_trajectory(sub)
-        return two_stage_hand_eye({v: gtsam.Pose3(T) for v, T in traj.items()}, sub.base_T_ee)
+        return two_stage_hand_eye({v: gtsam.Pose3(T) for v, T in traj.items()}, sub.base_T_ee), {}
     if preds is None:
         raise SolveError("no predictions")
     p = subset_predictions(preds, sub.base_T_ee) if frames is not None else preds
@@ -117,11 +120,12 @@ def run_method(name, ds, preds, noise, frames=None, detections=None):
         obs = build_observations(p)
         comps = spanning_tree_poses(sorted(p.views), obs, pairwise_sim3(obs))
         biggest = max(comps, key=len)
-        return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee)
+        return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee), {}
     if name == "calib3r-graph":
         from calib3r_graph.solve import SolveOptions, solve
 
-        return solve(sub, p, SolveOptions(noise=noise)).ee_T_cam
+        sol = solve(sub, p, SolveOptions(noise=noise, progress=False))
+        return sol.ee_T_cam, sol.covariance
     raise ValueError(name)
 
 
@@ -130,16 +134,18 @@ def compare(ds, preds, noise, methods=METHODS, frames=None) -> dict:
     for m in methods:
         t = time.perf_counter()
         try:
-            X = run_method(m, ds, preds, noise, frames, detections)
+            X, cov = run_method(m, ds, preds, noise, frames, detections)
             status = "ok" if X else "error: no camera could be calibrated"
         except (Calib3rError, np.linalg.LinAlgError, RuntimeError, ValueError) as e:
-            X, status = {}, f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+            X, cov, status = {}, {}, f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
         seconds = time.perf_counter() - t
         key = ("seconds",) + tuple(subset_dataset(ds, frames).base_T_ee if frames is not None else ds.base_T_ee)
         if m in PATTERN_METHODS and key in detections and seconds < detections[key]:
             seconds += detections[key]  # every pattern method pays the (shared) board detection
-        results[m] = {"cameras": {c: {"T_ee_cam": x.matrix().tolist()} for c, x in X.items()},
-                      "seconds": seconds, "status": status}
+        cams = {c: {"T_ee_cam": x.matrix().tolist()} for c, x in X.items()}
+        for c, C in cov.items():  # the method's own uncertainty, where it has one (per axis, ee frame)
+            cams[c]["sigma_ee_frame"] = uncertainty_report(X[c], C)["sigma_ee_frame"]
+        results[m] = {"cameras": cams, "seconds": seconds, "status": status}
         log.info("%s: %s (%.1f s)", m, status, results[m]["seconds"])
     return {"methods": results}
 

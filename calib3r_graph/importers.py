@@ -196,7 +196,7 @@ def refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee,
     dets = [Detection(f, cv2.undistortPoints(c.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2), cam_T_board[f], 0.0)
             for f, c in corners.items()]
     X0 = opencv_hand_eye(ds, dets, "park")
-    refined = pattern_ba(ds, {"cam0": dets}, NoiseOptions(), {"cam0": X0}, return_intrinsics=True)[1]["cam0"]
+    refined = pattern_ba(ds, {"cam0": dets}, NoiseOptions(), {"cam0": X0}).intrinsics["cam0"]
     K2 = K.copy()
     K2[0, 0], K2[1, 1], K2[0, 2], K2[1, 2] = refined
     return K2

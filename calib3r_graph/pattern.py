@@ -83,9 +83,16 @@ def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(R), t.ravel())
 
 
+@dataclass
+class PatternBAResult:
+    ee_T_cam: dict  # camera -> Pose3
+    intrinsics: dict  # camera -> [fx, fy, cx, cy]
+    covariance: dict  # camera -> 6x6 marginal of ee_T_cam (GTSAM tangent), empty if unobservable
+
+
 def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100,
-               refine_intrinsics=True, return_intrinsics=False):
-    """Joint adjustment; returns {camera: ee_T_cam}. Uses every camera that saw the board.
+               refine_intrinsics=True) -> "PatternBAResult":
+    """Joint adjustment over every camera that saw the board.
 
     With ``refine_intrinsics`` each camera's fx, fy, cx, cy are adjusted too (the corners are
     already undistorted): the robot's metric motion separates focal length from board
@@ -138,8 +145,13 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         graph, _ = build(robot_scale)
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
     intrinsics = {c: values.atVector(gtsam.symbol("k", j)) for j, c in enumerate(cams)}
+    try:
+        marginals = gtsam.Marginals(graph, values)
+        covariance = {c: marginals.marginalCovariance(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
+    except RuntimeError:  # an unobservable direction: report no covariance rather than fail
+        covariance = {}
     for c, k in intrinsics.items():
         if refine_intrinsics:
             log.info("pattern-ba: %s intrinsics fx %.1f fy %.1f cx %.1f cy %.1f", c, *k)
-    X = {c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
-    return (X, intrinsics) if return_intrinsics else X
+    return PatternBAResult({c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}, intrinsics,
+                           covariance)
