@@ -95,8 +95,9 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     """Joint adjustment over every camera that saw the board.
 
     With ``refine_intrinsics`` each camera's fx, fy, cx, cy are adjusted too (the corners are
-    already undistorted): the robot's metric motion separates focal length from board
-    distance, which a board-only calibration cannot do when the board is small and far.
+    already undistorted), under a weak prior at the given values (3 % of f, 2 % of the image
+    size): the robot's metric motion separates focal length from board distance, which a
+    board-only calibration cannot do when the board is small and far.
 
     Solved twice: after the first solve the robot noise is calibrated from the robot
     factors' residuals (inflated when the arm is noisier than its nominal sigma), as in
@@ -122,6 +123,13 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     def build(robot_scale):
         graph = gtsam.NonlinearFactorGraph()
         robot = []
+        if refine_intrinsics:  # weak prior at the given intrinsics: 3 % of f, 2 % of the image size
+            for j, c in enumerate(cams):
+                cam = ds.cameras[c]
+                sig = [0.03 * cam.K[0, 0], 0.03 * cam.K[1, 1], 0.02 * cam.width, 0.02 * cam.height]
+                given = np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]])
+                graph.add(gtsam.PriorFactorVector(gtsam.symbol("k", j), given,
+                                                  gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
         for i, (j, c, d) in enumerate(views):
             k_cam = gtsam.symbol("v", i)
             keys = [k_board, k_cam] + ([gtsam.symbol("k", j)] if refine_intrinsics else [])
