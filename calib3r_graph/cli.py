@@ -53,7 +53,7 @@ def cmd_solve(args):
         from calib3r_graph.uncertainty import jackknife
 
         sol.stats["jackknife"] = jackknife(ds, preds, opt, sol, progress=not args.quiet)
-    out = Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name
+    out = _out_dir(args)
     summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud)
     print(summary, end="")
     print(f"  wrote {out}/calibration.json, trajectory.csv, summary.txt"
@@ -77,6 +77,11 @@ def cmd_simulate(args):
         raise InputError("--frames", "must be at least 2")
     simulate(out, opt, progress=not args.quiet)
     print(f"wrote {out} ({opt.frames} frames x {opt.cameras} camera(s), predictions/sim, ground_truth.yaml)")
+
+
+def _out_dir(args) -> Path:
+    """--out, or results/<dataset name>."""
+    return Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name
 
 
 def _solve_dataset(args):
@@ -105,7 +110,7 @@ def _solve_dataset(args):
 def cmd_plan(args):
     from calib3r_graph.dataset import read_robot_poses
     from calib3r_graph.output import atomic_write_json
-    from calib3r_graph.plan import rank_candidates
+    from calib3r_graph.plan import largest_sigmas, rank_candidates
 
     from calib3r_graph.dataset import load_dataset
 
@@ -113,14 +118,13 @@ def cmd_plan(args):
     candidates = read_robot_poses(Path(args.candidates), unit, "the --candidates file")  # fail before solving
     ds, preds, opt, sol = _solve_dataset(args)
     ranked = rank_candidates(ds, preds, sol, opt.noise, candidates)
-    t_now, r_now = max(np.sqrt(np.linalg.eigvalsh(np.asarray(c)[3:, 3:])[-1]) * 1e3 for c in sol.covariance.values()), \
-        max(np.degrees(np.sqrt(np.linalg.eigvalsh(np.asarray(c)[:3, :3])[-1])) for c in sol.covariance.values())
+    t_now, r_now = largest_sigmas([np.asarray(c) for c in sol.covariance.values()])
     print(f"now: largest sigma {t_now:.3f} mm, {r_now:.4f} deg ({len(sol.base_T_cam)} views)")
     print(f"{'rank':>4} {'candidate':>10} {'gain (nats)':>11} {'sigma t after':>14} {'sigma r after':>14}  overlaps")
     for i, c in enumerate(ranked, 1):
         print(f"{i:4d} {c.frame:>10} {c.information_gain_nats:11.3f} {c.sigma_t_mm_after:11.3f} mm "
               f"{c.sigma_r_deg_after:10.4f} deg  {c.overlapping_view or '-'} ({c.visible_points} points)")
-    out = (Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name) / "plan.json"
+    out = _out_dir(args) / "plan.json"
     atomic_write_json(out, {"candidates_file": str(args.candidates), "ranking": [vars(c) for c in ranked]})
     print(f"wrote {out}")
 

@@ -36,7 +36,8 @@ class CandidateScore:
     visible_points: int
 
 
-def _largest_sigmas(covs):
+def largest_sigmas(covs) -> tuple[float, float]:
+    """Largest translation sigma (mm) and rotation sigma (deg) over ee_T_cam covariances."""
     t = max(np.sqrt(np.linalg.eigvalsh(c[3:, 3:])[-1]) for c in covs) * 1e3
     r = max(np.sqrt(np.linalg.eigvalsh(c[:3, :3])[-1]) for c in covs)
     return float(t), float(np.degrees(r))
@@ -102,6 +103,6 @@ def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) ->
         marg = gtsam.Marginals(graph, values)
         after = [marg.marginalCovariance(keys.hand_eye(c)) for c in cameras]
         gain = 0.5 * (logdet_before - sum(np.linalg.slogdet(c)[1] for c in after))
-        t_mm, r_deg = _largest_sigmas(after)
+        t_mm, r_deg = largest_sigmas(after)
         out.append(CandidateScore(frame, float(gain), t_mm, r_deg, best if n_vis >= MIN_VISIBLE else None, n_vis))
     return sorted(out, key=lambda c: -c.information_gain_nats)

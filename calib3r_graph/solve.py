@@ -98,7 +98,7 @@ def robust_weights(observations, residuals, sqrt_infos, conf):
         u2 = x / sigma2
         w = np.minimum(1.0, HUBER_K / np.sqrt(np.maximum(u2, 1e-12)))
         out.append(np.where(u2 > OUTLIER_CUT_CHI2, 0.0, w * c))
-    return out, float(np.sqrt(sigma2))
+    return out
 
 
 MIN_ROBOT_POSES = 3
@@ -185,7 +185,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
         history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
         if rnd < opt.irls_rounds:
-            weights, _ = robust_weights(observations, match_residuals(observations, values, keys),
+            weights = robust_weights(observations, match_residuals(observations, values, keys),
                                         nominal_whitening(), conf)
     timings["optimisation"] = time.perf_counter() - t
 

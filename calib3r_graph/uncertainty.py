@@ -72,14 +72,13 @@ def motion_diagnostics(base_T_ee: dict, frames) -> list:
             w = gtsam.Rot3.Logmap(base_T_ee[a].between(base_T_ee[b]).rotation())
             angles.append(np.linalg.norm(w))
             if angles[-1] > np.radians(2):
-                axes.append(w / angles[-1] * angles[-1])
+                axes.append(w)  # angle-weighted axis
     if not angles or np.degrees(max(angles)) < 10:
         msgs.append("the flange rotates less than 10 degrees between any two poses: the translation of ee_T_cam "
                     "is poorly constrained; add poses rotated 30-90 degrees about different axes")
     elif len(axes) >= 2:
         # Second singular value of the (angle-weighted) rotation axes: ~0 when all axes are parallel.
-        s = np.linalg.svd(np.array(axes), compute_uv=False)
-        _, _, Vt = np.linalg.svd(np.array(axes))
+        _, s, Vt = np.linalg.svd(np.array(axes), full_matrices=False)
         if s[1] < 0.15 * s[0]:
             msgs.append(f"all robot rotations are about nearly parallel axes (ee axis ~{_direction(Vt[0])}): "
                         f"the translation of ee_T_cam along that axis is poorly constrained; add "

@@ -70,6 +70,14 @@ def pair_values(rng):
     return v
 
 
+def near_pair_values(rng) -> gtsam.Values:
+    """Two camera poses near identity (keys 0, 1), so points in front of one are in front of the other."""
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    return v
+
+
 def random_points(rng, n):
     uv = rng.uniform([0, 0], [640, 480], size=(n, 2))
     K = np.array([[500.0, 0, 320], [0, 510, 240], [0, 0, 1]])
@@ -96,10 +104,7 @@ def test_reprojection_jacobians(seed):
     n = 5
     uv_a, K_a, pa = random_points(rng, n)
     uv_b, K_b, pb = random_points(rng, n)
-    v = gtsam.Values()
-    # Keep both cameras looking at the points (positive depth in both) but with error.
-    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
-    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v = near_pair_values(rng)  # both cameras see the points, with error
     v.insert(2, float(rng.uniform(0.8, 1.2)))
     v.insert(3, float(rng.uniform(0.8, 1.2)))
     W = np.eye(2)[None] * rng.uniform(0.5, 2, size=(n, 1, 1))
@@ -249,9 +254,7 @@ def test_compressed_reprojection_factor_is_equivalent():
     n = 30
     uv_a, K_a, pa = random_points(rng, n)
     uv_b, K_b, pb = random_points(rng, n)
-    v = gtsam.Values()
-    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
-    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v = near_pair_values(rng)
     v.insert(2, 1.1)
     v.insert(3, 0.9)
     m = factors.ReprojectionMeasurement(pa, pb, uv_a, uv_b, K_a, K_b, np.eye(2)[None].repeat(n, 0))
@@ -300,9 +303,7 @@ def test_reprojection_with_depth_correction_jacobians():
     n = 5
     uv_a, K_a, pa = random_points(rng, n)
     uv_b, K_b, pb = random_points(rng, n)
-    v = gtsam.Values()
-    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
-    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.05))
+    v = near_pair_values(rng)
     v.insert(2, 1.05)
     v.insert(3, 0.95)
     v.insert(4, rng.normal(size=5) * 0.03)

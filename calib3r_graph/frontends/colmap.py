@@ -85,6 +85,14 @@ def run_colmap(ds, work: Path, max_features=2048, progress=True):
     return rec, names
 
 
+def cam_T_world(image) -> np.ndarray:
+    """A registered pycolmap image's pose as a 4x4 cam_T_world (COLMAP units)."""
+    cam_from_world = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+    T = np.eye(4)
+    T[:3] = cam_from_world.matrix()
+    return T
+
+
 def triangulation_angles(rec, point_ids, centres) -> np.ndarray:
     """Largest angle (rad) between the viewing rays of each 3D point's track.
 
@@ -121,9 +129,7 @@ def predict_colmap(ds, name="colmap", neighbours=6, max_features=2048, progress=
             if vid is None:
                 continue
             cam = ds.cameras[vid.split("/")[0]]
-            cam_from_world = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
-            T = np.eye(4)
-            T[:3] = cam_from_world.matrix()
+            T = cam_T_world(img)
             poses[vid] = np.linalg.inv(T)  # world_T_cam
             pts2d = [p for p in img.points2D if p.has_point3D()]
             if len(pts2d) < 10:
@@ -206,10 +212,7 @@ def colmap_trajectory(ds, progress=False, max_features=2048) -> dict:
         for image_id in rec.reg_image_ids():
             img = rec.image(image_id)
             if img.name in names:
-                cfw = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
-                T = np.eye(4)
-                T[:3] = cfw.matrix()
-                out[names[img.name]] = np.linalg.inv(T)
+                out[names[img.name]] = np.linalg.inv(cam_T_world(img))
         return out
     finally:
         shutil.rmtree(work, ignore_errors=True)
