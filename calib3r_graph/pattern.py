@@ -88,10 +88,13 @@ class PatternBAResult:
     ee_T_cam: dict  # camera -> Pose3
     intrinsics: dict  # camera -> [fx, fy, cx, cy]
     covariance: dict  # camera -> 6x6 marginal of ee_T_cam (GTSAM tangent), empty if unobservable
+    corner_sigma_px: float = 0.5  # calibrated corner noise
+    robot_noise_factor: float = 1.0  # robot sigma used / nominal
+    board_scale: float = 1.0  # estimated square size / nominal
 
 
 def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100,
-               refine_intrinsics=True) -> "PatternBAResult":
+               refine_intrinsics=True, noise_rounds=4, estimate_board_scale=True) -> "PatternBAResult":
     """Joint adjustment over every camera that saw the board.
 
     With ``refine_intrinsics`` each camera's fx, fy, cx, cy are adjusted too (the corners are
@@ -99,12 +102,20 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     size): the robot's metric motion separates focal length from board distance, which a
     board-only calibration cannot do when the board is small and far.
 
-    Solved twice: after the first solve the robot noise is calibrated from the robot
-    factors' residuals (inflated when the arm is noisier than its nominal sigma), as in
-    ``solve``, so an optimistic robot model cannot override the images.
+    With ``estimate_board_scale`` the board's scale is a variable too (one factor on the
+    nominal square size, 2 % prior): a printed board is routinely 0.1-0.5 % off, which biases a
+    pattern hand-eye along the optical axis by that fraction of the board distance, and the
+    robot's metric motion measures it.
+
+    The two noise groups are calibrated from their own residuals (variance component
+    estimation), because their relative weight decides the result: each round rescales the
+    corner noise by its a posteriori variance factor (up or down: ``sigma_px`` is only the
+    starting value; subpixel corners are often 0.05-0.1 px) and the robot noise by its own
+    (inflated only: never better than the nominal sigma), then solves again, until both
+    factors settle within 5 %.
     """
     obj = board_points(ds.pattern)
-    k_board = gtsam.symbol("b", 0)
+    k_board, k_scale = gtsam.symbol("b", 0), gtsam.symbol("q", 0)
     cams = [c for c in detections_by_cam if detections_by_cam[c]]
     values = gtsam.Values()
     boards = []
@@ -113,6 +124,8 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         for d in detections_by_cam[c]:
             boards.append(ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]).compose(d.cam_T_board))
     values.insert(k_board, mean_pose(boards))
+    if estimate_board_scale:
+        values.insert(k_scale, 1.0)
     for j, c in enumerate(cams):
         K = ds.cameras[c].K
         values.insert(gtsam.symbol("k", j), np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
@@ -120,9 +133,11 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     for i, (j, c, d) in enumerate(views):
         values.insert(gtsam.symbol("v", i), ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]))
 
-    def build(robot_scale):
+    def build(px, robot_scale):
         graph = gtsam.NonlinearFactorGraph()
-        robot = []
+        board, robot = [], []
+        if estimate_board_scale:
+            graph.add(gtsam.PriorFactorDouble(k_scale, 1.0, gtsam.noiseModel.Isotropic.Sigma(1, 0.02)))
         if refine_intrinsics:  # weak prior at the given intrinsics: 3 % of f, 2 % of the image size
             for j, c in enumerate(cams):
                 cam = ds.cameras[c]
@@ -132,26 +147,43 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
                                                   gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
         for i, (j, c, d) in enumerate(views):
             k_cam = gtsam.symbol("v", i)
-            keys = [k_board, k_cam] + ([gtsam.symbol("k", j)] if refine_intrinsics else [])
-            graph.add(make_pattern_factor(PatternMeasurement(obj, d.uv, ds.cameras[c].K, sigma_px), keys))
+            keys = [k_board, k_cam] + ([gtsam.symbol("k", j)] if refine_intrinsics else []) + \
+                ([k_scale] if estimate_board_scale else [])
+            board.append(make_pattern_factor(PatternMeasurement(obj, d.uv, ds.cameras[c].K, px, estimate_board_scale),
+                                             keys))
             cov = robot_pose_noise_covariance(init_ee_T_cam[c], np.radians(noise.robot_sigma_deg),
                                               noise.robot_sigma_mm * 1e-3) * robot_scale
-            f = factors.make_robot_pose_factor(ds.base_T_ee[d.frame], [gtsam.symbol("e", j), k_cam],
-                                               gtsam.noiseModel.Gaussian.Covariance(cov))
+            robot.append(factors.make_robot_pose_factor(ds.base_T_ee[d.frame], [gtsam.symbol("e", j), k_cam],
+                                                        gtsam.noiseModel.Gaussian.Covariance(cov)))
+        for f in board + robot:
             graph.add(f)
-            robot.append(f)
-        return graph, robot
+        return graph, board, robot
 
+    # Redundancy of each group: the corners fix each view's pose (and the intrinsics); the
+    # robot factors then over-determine the views beyond ee_T_cam and the board pose.
+    n_corners = sum(len(d.uv) for _, _, d in views)
+    redundancy_board = max(2 * n_corners - 6 * len(views) - 4 * len(cams) * refine_intrinsics - estimate_board_scale, 1)
+    redundancy_robot = max(6 * len(views) - 6 * len(cams) - 6, 1)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
-    graph, robot = build(1.0)
-    values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    chi2 = 2 * sum(f.error(values) for f in robot)
-    robot_scale = max(1.0, chi2 / max(6 * len(views) - 6 * len(cams) - 6, 1))
-    if robot_scale > 1.0:
-        log.info("pattern-ba: robot poses %.1fx noisier than nominal; re-solving", np.sqrt(robot_scale))
-        graph, _ = build(robot_scale)
+    px, robot_scale = sigma_px, 1.0
+    for rnd in range(noise_rounds + 1):
+        graph, board, robot = build(px, robot_scale)
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        if rnd == noise_rounds:
+            break
+        board_factor = 2 * sum(f.error(values) for f in board) / redundancy_board
+        robot_factor = 2 * sum(f.error(values) for f in robot) / redundancy_robot
+        new_px, new_robot = px * np.sqrt(board_factor), max(1.0, robot_scale * robot_factor)
+        settled = abs(new_px / px - 1) < 0.05 and abs(new_robot / robot_scale - 1) < 0.05
+        px, robot_scale = new_px, new_robot
+        if settled:
+            graph, board, robot = build(px, robot_scale)
+            values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+            break
+    board_scale = values.atDouble(k_scale) if estimate_board_scale else 1.0
+    log.info("pattern-ba: corner noise %.3f px, robot poses %.1fx their nominal sigma, board scale %.5f (square "
+             "%.3f mm)", px, np.sqrt(robot_scale), board_scale, 1e3 * board_scale * ds.pattern["square_size"])
     intrinsics = {c: values.atVector(gtsam.symbol("k", j)) for j, c in enumerate(cams)}
     try:
         marginals = gtsam.Marginals(graph, values)
@@ -162,4 +194,4 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         if refine_intrinsics:
             log.info("pattern-ba: %s intrinsics fx %.1f fy %.1f cx %.1f cy %.1f", c, *k)
     return PatternBAResult({c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}, intrinsics,
-                           covariance)
+                           covariance, px, float(np.sqrt(robot_scale)), board_scale)

@@ -296,6 +296,25 @@ def test_pattern_factor_with_intrinsics_jacobians():
     check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
 
 
+@pytest.mark.parametrize("with_intrinsics", [False, True])
+def test_pattern_factor_with_board_scale_jacobians(with_intrinsics):
+    from factors.pattern import PatternMeasurement, make_pattern_factor, pattern_error
+
+    rng = np.random.default_rng(5)
+    corners = np.c_[np.mgrid[0:4, 0:3].reshape(2, -1).T * 0.03, np.zeros(12)]
+    v = gtsam.Values()
+    v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), np.array([0, 0, 0.5])))
+    v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.02))
+    keys = [0, 1]
+    if with_intrinsics:
+        v.insert(2, np.array([510.0, 495.0, 318.0, 244.0]))
+        keys.append(2)
+    v.insert(3, 1.013)
+    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.diag([500.0, 500.0, 1.0]), 0.5, True)
+    f = make_pattern_factor(m, keys + [3])
+    check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
+
+
 def test_reprojection_with_depth_correction_jacobians():
     from factors.match3d import depth_correction_basis
 
