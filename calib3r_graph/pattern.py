@@ -166,21 +166,17 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     redundancy_robot = max(6 * len(views) - 6 * len(cams) - 6, 1)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
-    px, robot_scale = sigma_px, 1.0
+    px, robot_scale, settled = sigma_px, 1.0, False
     for rnd in range(noise_rounds + 1):
         graph, board, robot = build(px, robot_scale)
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        if rnd == noise_rounds:
+        if settled or rnd == noise_rounds:  # this solve used the settled noise
             break
         board_factor = 2 * sum(f.error(values) for f in board) / redundancy_board
         robot_factor = 2 * sum(f.error(values) for f in robot) / redundancy_robot
         new_px, new_robot = px * np.sqrt(board_factor), max(1.0, robot_scale * robot_factor)
         settled = abs(new_px / px - 1) < 0.05 and abs(new_robot / robot_scale - 1) < 0.05
         px, robot_scale = new_px, new_robot
-        if settled:
-            graph, board, robot = build(px, robot_scale)
-            values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-            break
     board_scale = values.atDouble(k_scale) if estimate_board_scale else 1.0
     log.info("pattern-ba: corner noise %.3f px, robot poses %.1fx their nominal sigma, board scale %.5f (square "
              "%.3f mm)", px, np.sqrt(robot_scale), board_scale, 1e3 * board_scale * ds.pattern["square_size"])

@@ -2,9 +2,14 @@
 user's clone: then these tests skip). Importing must find each file's pose convention from
 the images and calibrate sensible intrinsics."""
 
+import json
+
+import gtsam
 import numpy as np
 import pytest
 
+from calib3r_graph.cli import main
+from calib3r_graph.compare import errors_against
 from calib3r_graph.dataset import load_dataset
 from calib3r_graph.importers import import_recording
 from tests.conftest import SHARED
@@ -47,13 +52,6 @@ def test_rwhe_patternless_agrees_with_the_pattern_reference(tmp_path):
     """The issue's acceptance on rwhe_kuka_1, end to end: import, the colmap frontend (RGB only),
     compare. Ours never uses the board's geometry, yet lands within 1 mm / 0.05 deg of
     pattern-ba and beats both two-stage pipelines in translation and rotation."""
-    import json
-
-    import gtsam
-
-    from calib3r_graph.cli import main
-    from calib3r_graph.compare import errors_against
-
     root = tmp_path / "rwhe"
     import_recording("rwhe", REAL / "rwhe_kuka_1", root, (28, 17), progress=False)
     assert main(["-q", "predict", str(root), "--frontend", "colmap"]) == 0
