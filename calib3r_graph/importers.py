@@ -182,7 +182,7 @@ def choose_convention(mats: dict, cam_T_board: dict):
 
 
 def refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern):
-    """fx, fy, cx, cy from a joint adjustment with the robot poses (pattern-ba with intrinsics).
+    """K and distortion from a joint adjustment with the robot poses (pattern-ba with intrinsics).
 
     A board that is small and far in the image leaves focal length and board distance
     entangled in a board-only calibration; the robot's metric motion separates them.
@@ -193,13 +193,10 @@ def refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee,
 
     cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist))
     ds = Dataset(Path("."), {"cam0": cam}, {f: base_T_ee[f] for f in corners}, pattern)
-    dets = [Detection(f, cv2.undistortPoints(c.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2), cam_T_board[f], 0.0)
-            for f, c in corners.items()]
+    dets = [Detection(f, c.astype(np.float64), cam_T_board[f], 0.0) for f, c in corners.items()]
     X0 = opencv_hand_eye(ds, dets, "park")
-    refined = pattern_ba(ds, {"cam0": dets}, NoiseOptions(), {"cam0": X0}).intrinsics["cam0"]
-    K2 = K.copy()
-    K2[0, 0], K2[1, 1], K2[0, 2], K2[1, 2] = refined
-    return K2
+    fx, fy, cx, cy, *refined_dist = pattern_ba(ds, {"cam0": dets}, NoiseOptions(), {"cam0": X0}).intrinsics["cam0"]
+    return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), np.array(refined_dist)
 
 
 def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
@@ -216,7 +213,7 @@ def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
     pattern = {"type": "checkerboard", "inner_corners": [int(board_used[0]), int(board_used[1])],
                "square_size": float(rec.square_m)}
     K_board = K.copy()
-    K = refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern)
+    K, dist = refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern)
     cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), tuple(float(x) for x in
                  (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist)))
     with staged_directory(dst) as stage:

@@ -27,7 +27,7 @@ OPENCV_METHODS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PA
 @dataclass
 class Detection:
     frame: str
-    uv: np.ndarray  # (N, 2) corners
+    uv: np.ndarray  # (N, 2) corners as detected (distorted pixels)
     cam_T_board: gtsam.Pose3  # from PnP
     reprojection_px: float
 
@@ -63,10 +63,13 @@ def detect(ds, camera: str, frames=None) -> list:
         proj, _ = cv2.projectPoints(obj, rvec, tvec, cam.K, cam.dist)
         err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - uv) ** 2, 1))))
         R, _ = cv2.Rodrigues(rvec)
-        if np.any(cam.dist):  # pattern-ba works on a pinhole model: undistort the corners once
-            uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), cam.K, cam.dist, P=cam.K).reshape(-1, 2)
         out.append(Detection(f, uv, gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()), err))
     return out
+
+
+def camera_intrinsics(cam) -> np.ndarray:
+    """The OPENCV model's eight parameters of a camera (PINHOLE: no distortion)."""
+    return np.array([*cam.params[:4], *cam.dist], dtype=float)
 
 
 def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
@@ -86,7 +89,7 @@ def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
 @dataclass
 class PatternBAResult:
     ee_T_cam: dict  # camera -> Pose3
-    intrinsics: dict  # camera -> [fx, fy, cx, cy]
+    intrinsics: dict  # camera -> [fx, fy, cx, cy, k1, k2, p1, p2]
     covariance: dict  # camera -> 6x6 marginal of ee_T_cam (GTSAM tangent), empty if unobservable
     corner_sigma_px: float = 0.5  # calibrated corner noise
     robot_noise_factor: float = 1.0  # robot sigma used / nominal
@@ -97,10 +100,13 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
                refine_intrinsics=True, noise_rounds=4, estimate_board_scale=True) -> "PatternBAResult":
     """Joint adjustment over every camera that saw the board.
 
-    With ``refine_intrinsics`` each camera's fx, fy, cx, cy are adjusted too (the corners are
-    already undistorted), under a weak prior at the given values (3 % of f, 2 % of the image
-    size): the robot's metric motion separates focal length from board distance, which a
-    board-only calibration cannot do when the board is small and far.
+    With ``refine_intrinsics`` each camera's whole OPENCV model (fx, fy, cx, cy, k1, k2, p1,
+    p2) is adjusted too, on the raw corners, under a weak prior at the given values (3 % of f,
+    2 % of the image size, 0.5 on k1 and k2, 0.01 on p1 and p2): the robot's metric motion
+    separates focal length from board distance, which a board-only calibration cannot do
+    when the board is small and far. The distortion is refined with the focal length and
+    principal point because it acts on normalised coordinates: new K with old distortion
+    coefficients is a different lens.
 
     With ``estimate_board_scale`` the board's scale is a variable too (one factor on the
     nominal square size, 2 % prior): a printed board is routinely 0.1-0.5 % off, which biases a
@@ -128,7 +134,7 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         values.insert(k_scale, 1.0)
     for j, c in enumerate(cams):
         K = ds.cameras[c].K
-        values.insert(gtsam.symbol("k", j), np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]))
+        values.insert(gtsam.symbol("k", j), camera_intrinsics(ds.cameras[c]))
     views = [(j, c, d) for j, c in enumerate(cams) for d in detections_by_cam[c]]
     for i, (j, c, d) in enumerate(views):
         values.insert(gtsam.symbol("v", i), ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]))
@@ -138,18 +144,19 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         board, robot = [], []
         if estimate_board_scale:
             graph.add(gtsam.PriorFactorDouble(k_scale, 1.0, gtsam.noiseModel.Isotropic.Sigma(1, 0.02)))
-        if refine_intrinsics:  # weak prior at the given intrinsics: 3 % of f, 2 % of the image size
+        if refine_intrinsics:  # weak prior at the given intrinsics
             for j, c in enumerate(cams):
                 cam = ds.cameras[c]
-                sig = [0.03 * cam.K[0, 0], 0.03 * cam.K[1, 1], 0.02 * cam.width, 0.02 * cam.height]
-                given = np.array([cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]])
-                graph.add(gtsam.PriorFactorVector(gtsam.symbol("k", j), given,
+                lens = [0.5, 0.5, 0.01, 0.01] if cam.model == "OPENCV" else [1e-9] * 4  # PINHOLE stays one
+                sig = [0.03 * cam.K[0, 0], 0.03 * cam.K[1, 1], 0.02 * cam.width, 0.02 * cam.height, *lens]
+                graph.add(gtsam.PriorFactorVector(gtsam.symbol("k", j), camera_intrinsics(cam),
                                                   gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
         for i, (j, c, d) in enumerate(views):
             k_cam = gtsam.symbol("v", i)
             keys = [k_board, k_cam] + ([gtsam.symbol("k", j)] if refine_intrinsics else []) + \
                 ([k_scale] if estimate_board_scale else [])
-            board.append(make_pattern_factor(PatternMeasurement(obj, d.uv, ds.cameras[c].K, px, estimate_board_scale),
+            board.append(make_pattern_factor(PatternMeasurement(obj, d.uv, camera_intrinsics(ds.cameras[c]), px,
+                                                                estimate_board_scale),
                                              keys))
             cov = robot_pose_noise_covariance(init_ee_T_cam[c], np.radians(noise.robot_sigma_deg),
                                               noise.robot_sigma_mm * 1e-3) * robot_scale
@@ -162,7 +169,7 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     # Redundancy of each group: the corners fix each view's pose (and the intrinsics); the
     # robot factors then over-determine the views beyond ee_T_cam and the board pose.
     n_corners = sum(len(d.uv) for _, _, d in views)
-    redundancy_board = max(2 * n_corners - 6 * len(views) - 4 * len(cams) * refine_intrinsics - estimate_board_scale, 1)
+    redundancy_board = max(2 * n_corners - 6 * len(views) - 8 * len(cams) * refine_intrinsics - estimate_board_scale, 1)
     redundancy_robot = max(6 * len(views) - 6 * len(cams) - 6, 1)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
@@ -184,10 +191,14 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     try:
         marginals = gtsam.Marginals(graph, values)
         covariance = {c: marginals.marginalCovariance(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
+        intrinsics_sigma = {c: np.sqrt(np.diag(marginals.marginalCovariance(gtsam.symbol("k", j))))
+                            for j, c in enumerate(cams)} if refine_intrinsics else {}
     except RuntimeError:  # an unobservable direction: report no covariance rather than fail
-        covariance = {}
+        covariance, intrinsics_sigma = {}, {}
     for c, k in intrinsics.items():
         if refine_intrinsics:
-            log.info("pattern-ba: %s intrinsics fx %.1f fy %.1f cx %.1f cy %.1f", c, *k)
+            sig = intrinsics_sigma.get(c, np.full(8, np.nan))
+            log.info("pattern-ba: %s intrinsics fx %.1f±%.1f fy %.1f±%.1f cx %.1f±%.1f cy %.1f±%.1f, k1 %.4f±%.4f "
+                     "k2 %.4f±%.4f p1 %.5f±%.5f p2 %.5f±%.5f", c, *np.ravel(np.column_stack([k, sig])))
     return PatternBAResult({c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}, intrinsics,
                            covariance, px, float(np.sqrt(robot_scale)), board_scale)

@@ -83,11 +83,39 @@ def motion_diagnostics(base_T_ee: dict, frames) -> list:
             msgs.append(f"all robot rotations are about nearly parallel axes (ee axis ~{_direction(Vt[0])}): "
                         f"the translation of ee_T_cam along that axis is poorly constrained; add "
                         "poses that rotate about a perpendicular axis")
+    if not msgs[-1:] or "rotat" not in msgs[-1]:
+        gain, axis = systematic_error_gain(base_T_ee, frames)
+        if gain > 5.0:
+            msgs.append(f"the flange rotates little about the axes perpendicular to ee direction {_direction(axis)}: "
+                        f"each mm of systematic error in the robot's or the camera's relative translations moves "
+                        f"the translation of ee_T_cam along it by about {gain:.0f} mm, which no sigma shows; add "
+                        "poses that rotate 20-40 degrees about axes perpendicular to it")
     pure = np.mean(np.degrees(angles) < 1.0) if angles else 0.0
     if pure > 0.5:
         msgs.append(f"{100 * pure:.0f} % of pose pairs are pure translations: they fix the scale and rotation but "
                     "not the translation of ee_T_cam; add rotated poses")
     return msgs
+
+
+def systematic_error_gain(base_T_ee: dict, frames) -> tuple[float, np.ndarray]:
+    """How much a systematic (not averaging out) error in relative translations moves t of ee_T_cam.
+
+    AX = XB's translation part, (R_A - I) t_X = R_X t_B - t_A over all pose pairs, fixes t_X
+    only through the flange's rotations: along an ee direction that the rotations barely move
+    (rms of |(R_A - I) d| small), a bias of 1 mm in the robot's or the camera's relative
+    translations becomes 1 / rms mm in t_X. Returns (largest such gain, its ee direction).
+    The sum over pairs needs no loop: sum_{a<b} (R_ab - I)^T (R_ab - I) = 2 P I - (G^T G - n I)
+    with R_ab = R_a^T R_b, G = sum_a R_a and P = n (n - 1) / 2 pairs.
+    """
+    R = np.array([base_T_ee[f].rotation().matrix() for f in frames])
+    n = len(R)
+    pairs = n * (n - 1) / 2
+    if pairs < 1:
+        return float("inf"), np.array([0.0, 0.0, 1.0])
+    G = R.sum(axis=0)
+    S = (2 * pairs + n) * np.eye(3) - G.T @ G
+    lam, V = np.linalg.eigh((S + S.T) / (2 * pairs))
+    return float(1 / np.sqrt(max(lam[0], 1e-12))), V[:, 0]
 
 
 def covariance_diagnostics(camera: str, T_ee_cam, cov, weak_mm: float = 2.0, weak_deg: float = 0.2) -> list:

@@ -1,16 +1,26 @@
 """Reprojection of a calibration pattern's known corners (for the pattern-based reference).
 
 With the board pose ``base_T_board`` and a view's pose ``base_T_cam``, every corner
-``P_k`` (board frame, metres) projects to
+``P_k`` (board frame, metres) is moved into the camera and projected with OpenCV's
+camera model (the dataset's OPENCV: radial k1, k2 and tangential p1, p2) onto the
+detected, *raw* (distorted) pixel ``u_k``:
 
-    r_k = W (pi(K, cam_T_board * P_k) - u_k)                    (2 rows per corner, whitened)
+    Q_k = cam_T_board * (b * P_k),     x, y = Q_x / Q_z, Q_y / Q_z,     r2 = x^2 + y^2
+    x_d = x (1 + k1 r2 + k2 r2^2) + 2 p1 x y + p2 (r2 + 2 x^2)
+    y_d = y (1 + k1 r2 + k2 r2^2) + p1 (r2 + 2 y^2) + 2 p2 x y
+    r_k = (fx x_d + cx - u_k, fy y_d + cy - v_k) / sigma_px       (2 rows per corner)
 
-Keys: ``[base_T_board (Pose3), base_T_cam (Pose3)]``, optionally the camera's intrinsics
-``k = [fx, fy, cx, cy]`` (Vector 4), which then replace ``K``, and optionally (when the
-measurement says ``board_scale``) the board's scale ``b`` (double, last key): the corners are
-then ``b * P_k``. A printed board is often 0.1-0.5 % off its nominal square size, and with a
-camera 1 m from the board that biases a pattern hand-eye by 1-5 mm along the optical axis;
-the robot's metric motion makes ``b`` observable. Error dimension 2N.
+Keys: ``[base_T_board (Pose3), base_T_cam (Pose3)]``; optionally the camera's intrinsics
+``[fx, fy, cx, cy, k1, k2, p1, p2]`` (Vector 8), which then replace the measurement's
+fixed ones; and optionally (when the measurement says ``board_scale``) the board's scale
+``b`` (double, last key; otherwise b = 1). A printed board is often 0.1-0.5 % off its
+nominal square size, and with a camera 1 m from the board that biases a pattern hand-eye
+by 1-5 mm along the optical axis; the robot's metric motion makes ``b`` observable.
+
+Refining the focal length and principal point on corners undistorted with the *old*
+intrinsics is not one camera model (OpenCV's distortion acts on normalised coordinates,
+which move with K): the adjusted camera is therefore projected in full, on raw corners.
+Error dimension 2N, in units of sigma_px.
 """
 
 from dataclasses import dataclass
@@ -19,42 +29,69 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from factors.reprojection import _project_one_way
+from factors.reprojection import transform_one_way
+
+INTRINSICS_DIM = 8  # fx, fy, cx, cy, k1, k2, p1, p2
 
 
 @dataclass(frozen=True)
 class PatternMeasurement:
-    corners_board: np.ndarray  # (N, 3) corner positions in the board frame
-    uv: np.ndarray  # (N, 2) detected pixels
-    K: np.ndarray  # (3, 3)
+    corners_board: np.ndarray  # (N, 3) corner positions in the board frame, metres
+    uv: np.ndarray  # (N, 2) detected (distorted) pixels
+    intrinsics: np.ndarray  # (8,) fx, fy, cx, cy, k1, k2, p1, p2 used when no intrinsics key is given
     sigma_px: float = 0.5
     board_scale: bool = False  # the last key is the board's scale factor
+
+
+def distort(x, y, dist):
+    """OpenCV's radial-tangential model on normalised coordinates (N,): ``(x_d, y_d)`` and
+    the Jacobians ``d(x_d, y_d)/d(x, y)`` (N, 2, 2) and ``d(x_d, y_d)/d(k1, k2, p1, p2)`` (N, 2, 4)."""
+    k1, k2, p1, p2 = dist
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    d_radial = 2 * (k1 + 2 * k2 * r2)  # d radial / d r2, times 2 for d r2 / dx = 2x
+    J_xy = np.empty((len(x), 2, 2))
+    J_xy[:, 0, 0] = radial + x * x * d_radial + 2 * p1 * y + 6 * p2 * x
+    J_xy[:, 0, 1] = x * y * d_radial + 2 * p1 * x + 2 * p2 * y
+    J_xy[:, 1, 0] = x * y * d_radial + 2 * p1 * x + 2 * p2 * y
+    J_xy[:, 1, 1] = radial + y * y * d_radial + 6 * p1 * y + 2 * p2 * x
+    J_dist = np.empty((len(x), 2, 4))
+    J_dist[:, 0] = np.stack([x * r2, x * r2 * r2, 2 * x * y, r2 + 2 * x * x], axis=1)
+    J_dist[:, 1] = np.stack([y * r2, y * r2 * r2, r2 + 2 * y * y, 2 * x * y], axis=1)
+    return xd, yd, J_xy, J_dist
 
 
 def pattern_error(m: PatternMeasurement, this, values, jacobians):
     keys = this.keys()
     board_T_cam = values.atPose3(keys[0]).between(values.atPose3(keys[1]))
-    K = m.K
     with_intrinsics = len(keys) - int(m.board_scale) == 3
-    if with_intrinsics:
-        fx, fy, cx, cy = values.atVector(keys[2])
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    k = values.atVector(keys[2]) if with_intrinsics else m.intrinsics
+    fx, fy, cx, cy = k[:4]
     scale = values.atDouble(keys[-1]) if m.board_scale else 1.0
-    r, J = _project_one_way(m.corners_board, m.uv, K, board_T_cam, scale)
+    Q, dQ = transform_one_way(m.corners_board, board_T_cam, scale)
+    z = Q[:, 2]
+    x, y = Q[:, 0] / z, Q[:, 1] / z
+    xd, yd, J_xy, J_dist = distort(x, y, k[4:8])
+    r = np.stack([fx * xd + cx - m.uv[:, 0], fy * yd + cy - m.uv[:, 1]], axis=1) / m.sigma_px
     if jacobians is not None:
-        jacobians[0] = J[0].reshape(-1, 6) / m.sigma_px
-        jacobians[1] = J[1].reshape(-1, 6) / m.sigma_px
+        n = len(Q)
+        d_xy = np.zeros((n, 2, 3))  # d(x, y)/dQ
+        d_xy[:, 0, 0], d_xy[:, 0, 2] = 1 / z, -x / z
+        d_xy[:, 1, 1], d_xy[:, 1, 2] = 1 / z, -y / z
+        d_uv = np.array([fx, fy])[None, :, None] * (J_xy @ d_xy) / m.sigma_px  # d r / dQ
+        jacobians[0] = (d_uv @ dQ[0]).reshape(-1, 6)
+        jacobians[1] = (d_uv @ dQ[1]).reshape(-1, 6)
         if m.board_scale:
-            jacobians[len(keys) - 1] = J[2].reshape(-1, 1) / m.sigma_px
+            jacobians[len(keys) - 1] = (d_uv @ dQ[2]).reshape(-1, 1)
         if with_intrinsics:
-            # u = fx x/z + cx, v = fy y/z + cy  ->  normalised coordinates from the residual
-            xn = (r[:, 0] + m.uv[:, 0] - K[0, 2]) / K[0, 0]
-            yn = (r[:, 1] + m.uv[:, 1] - K[1, 2]) / K[1, 1]
-            Jk = np.zeros((len(r), 2, 4))
-            Jk[:, 0, 0], Jk[:, 0, 2] = xn, 1.0
-            Jk[:, 1, 1], Jk[:, 1, 3] = yn, 1.0
-            jacobians[2] = Jk.reshape(-1, 4) / m.sigma_px
-    return r.reshape(-1) / m.sigma_px
+            Jk = np.zeros((n, 2, INTRINSICS_DIM))
+            Jk[:, 0, 0], Jk[:, 0, 2] = xd, 1.0
+            Jk[:, 1, 1], Jk[:, 1, 3] = yd, 1.0
+            Jk[:, :, 4:] = np.array([fx, fy])[None, :, None] * J_dist
+            jacobians[2] = Jk.reshape(-1, INTRINSICS_DIM) / m.sigma_px
+    return r.reshape(-1)
 
 
 def make_pattern_factor(m: PatternMeasurement, keys) -> gtsam.CustomFactor:

@@ -46,16 +46,29 @@ class ReprojectionMeasurement:
         return 4 * len(self.uv_a)
 
 
+def transform_one_way(points_src, src_T_dst: gtsam.Pose3, s_src):
+    """``Q = dst_T_src * (s_src * points_src)`` (N, 3) and its Jacobians (N, 3, d) w.r.t. right
+    perturbations of base_T_src and base_T_dst (d = 6 each) and s_src (d = 1)."""
+    dst_T_src = src_T_dst.inverse()
+    R = dst_T_src.rotation().matrix()
+    P = s_src * points_src
+    Q = P @ R.T + dst_T_src.translation()
+    n = len(Q)
+    # Q = R_dst^T (R_src P + t_src - t_dst); right perturbations of src and dst poses.
+    dQ_src = np.concatenate([-R @ skew(P), np.broadcast_to(R, (n, 3, 3))], axis=2)
+    dQ_dst = np.concatenate([skew(Q), -np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)
+    dQ_s = (points_src @ R.T)[:, :, None]
+    return Q, [dQ_src, dQ_dst, dQ_s]
+
+
 def _project_one_way(ray_depth_src, uv_dst, K_dst, src_T_dst: gtsam.Pose3, s_src, basis=None, c=None):
     """Residual (N, 2) and Jacobians w.r.t. [xi_src (6), xi_dst (6), s_src (1)] (and c_src (K) with
     a basis) of one direction."""
     pd = ray_depth_src
     if basis is not None:
         ray_depth_src = pd * (1 + basis @ c)[:, None]
-    dst_T_src = src_T_dst.inverse()
-    R = dst_T_src.rotation().matrix()
-    P = s_src * ray_depth_src
-    Q = P @ R.T + dst_T_src.translation()
+    Q, (dQ_src, dQ_dst, dQ_s) = transform_one_way(ray_depth_src, src_T_dst, s_src)
+    R = src_T_dst.rotation().matrix().T
     x, y, z = Q[:, 0], Q[:, 1], Q[:, 2]
     fx, fy, cx, cy = K_dst[0, 0], K_dst[1, 1], K_dst[0, 2], K_dst[1, 2]
     uv = np.stack([fx * x / z + cx, fy * y / z + cy], axis=1)
@@ -63,10 +76,6 @@ def _project_one_way(ray_depth_src, uv_dst, K_dst, src_T_dst: gtsam.Pose3, s_src
     d_pi = np.zeros((n, 2, 3))
     d_pi[:, 0, 0], d_pi[:, 0, 2] = fx / z, -fx * x / z**2
     d_pi[:, 1, 1], d_pi[:, 1, 2] = fy / z, -fy * y / z**2
-    # Q = R_dst^T (R_src P + t_src - t_dst); right perturbations of src and dst poses.
-    dQ_src = np.concatenate([-R @ skew(P), np.broadcast_to(R, (n, 3, 3))], axis=2)
-    dQ_dst = np.concatenate([skew(Q), -np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)
-    dQ_s = (ray_depth_src @ R.T)[:, :, None]
     J = [d_pi @ dQ_src, d_pi @ dQ_dst, d_pi @ dQ_s]
     if basis is not None:  # d Q / d c = s R pd phi^T
         J.append(d_pi @ ((s_src * pd @ R.T)[:, :, None] * basis[:, None, :]))

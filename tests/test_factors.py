@@ -276,8 +276,8 @@ def test_pattern_factor_jacobians(seed):
     v = gtsam.Values()
     v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), np.array([0, 0, 0.5]) + rng.normal(size=3) * 0.02))
     v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.02))
-    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
-    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), K)
+    intrinsics = np.array([500.0, 500, 320, 240, -0.2, 0.1, 1e-3, -2e-3])  # with distortion
+    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), intrinsics)
     f = make_pattern_factor(m, [0, 1])
     check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
 
@@ -290,8 +290,8 @@ def test_pattern_factor_with_intrinsics_jacobians():
     v = gtsam.Values()
     v.insert(0, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), np.array([0, 0, 0.5])))
     v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.02))
-    v.insert(2, np.array([510.0, 495.0, 318.0, 244.0]))
-    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.eye(3))
+    v.insert(2, np.array([510.0, 495.0, 318.0, 244.0, -0.25, 0.15, 2e-3, -1e-3]))
+    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.zeros(8))
     f = make_pattern_factor(m, [0, 1, 2])
     check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
 
@@ -307,10 +307,11 @@ def test_pattern_factor_with_board_scale_jacobians(with_intrinsics):
     v.insert(1, gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.05), rng.normal(size=3) * 0.02))
     keys = [0, 1]
     if with_intrinsics:
-        v.insert(2, np.array([510.0, 495.0, 318.0, 244.0]))
+        v.insert(2, np.array([510.0, 495.0, 318.0, 244.0, 0.1, -0.05, -1e-3, 3e-3]))
         keys.append(2)
     v.insert(3, 1.013)
-    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.diag([500.0, 500.0, 1.0]), 0.5, True)
+    m = PatternMeasurement(corners, rng.uniform(200, 400, size=(12, 2)), np.array([500.0, 500, 0, 0, -0.2, 0.1, 0, 0]),
+                           0.5, True)
     f = make_pattern_factor(m, keys + [3])
     check_factor(lambda fac, vals, H: pattern_error(m, fac, vals, H), f, v, atol=1e-4)
 

@@ -4,7 +4,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from calib3r_graph.uncertainty import covariance_diagnostics, motion_diagnostics, noise_calibration
+from calib3r_graph.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
+                                      systematic_error_gain)
 
 
 def poses_about_axis(axis, n=8, rng=None):
@@ -24,6 +25,23 @@ def test_diverse_rotations_give_no_warning():
     poses = {f"{i:04d}": gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3) * 0.5), rng.normal(size=3) * 0.2)
              for i in range(10)}
     assert motion_diagnostics(poses, list(poses)) == []
+
+
+def test_systematic_error_gain_names_the_weak_direction():
+    """Rotations of +-20 deg about ee x and only +-3 deg about ee y and z leave t_X along x
+    fixed by the small rotations alone (tabb_ds1's motion is like this about its ee y)."""
+    rng = np.random.default_rng(2)
+    poses = {f"{i:04d}": gtsam.Pose3(gtsam.Rot3.Expmap(np.radians(rng.uniform(-1, 1, 3) * [20, 3, 3])),
+                                     rng.normal(size=3) * 0.2) for i in range(30)}
+    gain, axis = systematic_error_gain(poses, list(poses))
+    # Brute force over pairs gives the same gain.
+    M = np.vstack([poses[a].between(poses[b]).rotation().matrix() - np.eye(3)
+                   for i, a in enumerate(poses) for b in list(poses)[i + 1:]])
+    lam, V = np.linalg.eigh(M.T @ M / (len(M) // 3))
+    assert gain == pytest.approx(1 / np.sqrt(lam[0]), rel=1e-9)
+    assert abs(axis[0]) > 0.99 and gain > 10
+    msgs = motion_diagnostics(poses, list(poses))
+    assert any("ee direction [1.00 0.0" in m and "systematic" in m for m in msgs), msgs
 
 
 def test_too_little_rotation_and_too_few_poses():
