@@ -133,7 +133,6 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     if estimate_board_scale:
         values.insert(k_scale, 1.0)
     for j, c in enumerate(cams):
-        K = ds.cameras[c].K
         values.insert(gtsam.symbol("k", j), camera_intrinsics(ds.cameras[c]))
     views = [(j, c, d) for j, c in enumerate(cams) for d in detections_by_cam[c]]
     for i, (j, c, d) in enumerate(views):
@@ -147,7 +146,7 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         if refine_intrinsics:  # weak prior at the given intrinsics
             for j, c in enumerate(cams):
                 cam = ds.cameras[c]
-                lens = [0.5, 0.5, 0.01, 0.01] if cam.model == "OPENCV" else [1e-9] * 4  # PINHOLE stays one
+                lens = [0.5, 0.5, 0.01, 0.01] if cam.model == "OPENCV" else [1e-6] * 4  # PINHOLE stays a pinhole
                 sig = [0.03 * cam.K[0, 0], 0.03 * cam.K[1, 1], 0.02 * cam.width, 0.02 * cam.height, *lens]
                 graph.add(gtsam.PriorFactorVector(gtsam.symbol("k", j), camera_intrinsics(cam),
                                                   gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))

@@ -12,6 +12,7 @@ from calib3r_graph.cli import main
 from calib3r_graph.compare import errors_against
 from calib3r_graph.dataset import load_dataset
 from calib3r_graph.importers import import_recording
+from calib3r_graph.uncertainty import systematic_error_gain
 from tests.conftest import SHARED
 
 REAL = SHARED / "real"
@@ -44,6 +45,24 @@ def test_tabb_import_detects_inverted_millimetres(tmp_path):
     assert abs(ds.pattern["square_size"] - 0.0285) < 1e-9
     reach = max(np.linalg.norm(p.translation()) for p in ds.base_T_ee.values())
     assert 0.3 < reach < 1.5  # metres, a Denso VS-6577's workspace
+    # The board alone says fx 1059; the robot's metric motion moves it to about 1100.
+    assert 1090 < ds.cameras["cam0"].params[0] < 1110
+    # The flange hardly turns about axes that would fix ee y: systematic errors gain 8x there.
+    gain, axis = systematic_error_gain(ds.base_T_ee, ds.frames)
+    assert 7 < gain < 10 and abs(axis[1]) > 0.99
+
+
+def import_and_compare(tmp_path, fmt, src, board, methods) -> dict:
+    """import -> colmap frontend (RGB only) -> compare; {method: (e_t m, e_theta rad)} to pattern-ba."""
+    root = tmp_path / fmt
+    import_recording(fmt, REAL / src, root, board, progress=False)
+    assert main(["-q", "predict", str(root), "--frontend", "colmap"]) == 0
+    out = tmp_path / "cmp"
+    assert main(["-q", "compare", str(root), "--out", str(out), "--predictions", "colmap", "--methods", methods]) == 0
+    res = json.loads((out / "comparison.json").read_text())
+    assert all(r["status"] == "ok" for r in res["methods"].values())
+    ref = {"cam0": gtsam.Pose3(np.array(res["methods"]["pattern-ba"]["cameras"]["cam0"]["T_ee_cam"]))}
+    return {m: e["cam0"] for m, e in errors_against(res, ref).items()}
 
 
 @needs_real
@@ -52,17 +71,22 @@ def test_rwhe_patternless_agrees_with_the_pattern_reference(tmp_path):
     """The issue's acceptance on rwhe_kuka_1, end to end: import, the colmap frontend (RGB only),
     compare. Ours never uses the board's geometry, yet lands within 1 mm / 0.05 deg of
     pattern-ba and beats both two-stage pipelines in translation and rotation."""
-    root = tmp_path / "rwhe"
-    import_recording("rwhe", REAL / "rwhe_kuka_1", root, (28, 17), progress=False)
-    assert main(["-q", "predict", str(root), "--frontend", "colmap"]) == 0
-    out = tmp_path / "cmp"
-    assert main(["-q", "compare", str(root), "--out", str(out), "--predictions", "colmap",
-                 "--methods", "park,pattern-ba,jcr-colmap,jcr-predictions,calib3r-graph"]) == 0
-    res = json.loads((out / "comparison.json").read_text())
-    assert all(r["status"] == "ok" for r in res["methods"].values())
-    ref = {"cam0": gtsam.Pose3(np.array(res["methods"]["pattern-ba"]["cameras"]["cam0"]["T_ee_cam"]))}
-    errs = {m: e["cam0"] for m, e in errors_against(res, ref).items()}
+    errs = import_and_compare(tmp_path, "rwhe", "rwhe_kuka_1", (28, 17),
+                              "park,pattern-ba,jcr-colmap,jcr-predictions,calib3r-graph")
     ours = errs["calib3r-graph"]
     assert ours[0] < 1e-3 and np.degrees(ours[1]) < 0.05, ours
     for two_stage in ("jcr-colmap", "jcr-predictions"):
         assert ours[0] < errs[two_stage][0] and ours[1] < errs[two_stage][1], (two_stage, errs[two_stage])
+
+
+@needs_real
+@pytest.mark.slow
+def test_tabb_patternless_rotation_agrees_with_the_pattern_reference(tmp_path):
+    """tabb_ds1, end to end: the rotation meets the 0.3 deg acceptance. The translation is
+    2.1 cm from pattern-ba, which this recording cannot decide (README, Real recordings: both
+    methods move 5-25 mm between halves of the data and noise models); the bound only guards
+    that figure."""
+    errs = import_and_compare(tmp_path, "tabb", "tabb_ds1", None, "park,pattern-ba,calib3r-graph")
+    ours = errs["calib3r-graph"]
+    assert np.degrees(ours[1]) < 0.3 and ours[0] < 0.03, ours
+    assert ours[1] < errs["park"][1]
