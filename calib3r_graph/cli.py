@@ -192,9 +192,15 @@ def cmd_compare(args):
             sweep = cmp.views_sweep(ds, preds, noise, views, args.repeats, methods, reference)
             atomic_write_json(stage / "views_sweep.json", sweep)
             cmp.sweep_plot(sweep, stage / "views_sweep.png", ref_name)
+        if args.halves:
+            halves = cmp.halves(ds, preds, noise, methods)
+            atomic_write_json(stage / "halves.json", halves)
+            atomic_write_text(stage / "halves.md", cmp.halves_table(halves))
+            print(cmp.halves_table(halves))
     for m, r in result["methods"].items():
         print(f"{m:16s} {r['status']:40.40s} {r['seconds']:6.1f} s")
-    print(f"wrote {out}/comparison.json" + (", comparison.md, comparison.png" if ref_name else ""))
+    print(f"wrote {out}/comparison.json" + (", comparison.md, comparison.png" if ref_name else "") +
+          (", halves.json, halves.md" if args.halves else ""))
 
 
 def gtsam_pose(T):
@@ -311,6 +317,8 @@ def build_parser():
     c.add_argument("--methods", help="comma-separated subset of the methods (default: all)")
     c.add_argument("--views", help="robustness sweep over the number of poses, e.g. 5,7,9,...,25")
     c.add_argument("--repeats", type=int, default=3, help="random subsets per number of poses")
+    c.add_argument("--halves", action="store_true",
+                   help="also solve every method on each half of the frames and report how far apart the two are")
     c.set_defaults(func=cmd_compare)
 
     im = sub.add_parser("import", help="convert a public recording (rwhe, tabb) into a dataset")

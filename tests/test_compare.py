@@ -58,11 +58,30 @@ def test_compare_on_the_sample(tmp_path, capsys):
 def test_compare_without_pattern_reports_instead_of_failing(simulated, tmp_path, capsys):
     root = simulated(seed=3, frames=8)
     out = tmp_path / "cmp"
-    assert main(["compare", str(root), "--out", str(out), "--methods", "tsai,pattern-ba,jcr-predictions"]) == 0
+    assert main(["compare", str(root), "--out", str(out), "--methods", "tsai,pattern-ba,jcr-predictions",
+                 "--halves"]) == 0
     res = json.loads((out / "comparison.json").read_text())
     assert res["methods"]["tsai"]["status"] == "error: no pattern in dataset.yaml"
     assert res["methods"]["pattern-ba"]["status"].startswith("error:")
     assert res["methods"]["jcr-predictions"]["status"] == "ok"
+    halves = json.loads((out / "halves.json").read_text())["methods"]
+    assert halves["tsai"]["status"].startswith("first half: error: no pattern")
+    assert halves["tsai"]["cameras"] == {}
+
+
+def test_halves_measure_how_far_each_method_moves_with_the_poses(tmp_path, capsys):
+    """compare --halves: every method on the first and on the last four poses of the sample. Ours moves
+    about 2 mm / 0.06 deg between the two; OpenCV's park, from the same poses, 4-6 mm / 0.4 deg."""
+    out = tmp_path / "cmp"
+    assert main(["-q", "compare", str(SAMPLE), "--out", str(out), "--methods", "park,calib3r-graph", "--halves"]) == 0
+    res = json.loads((out / "halves.json").read_text())
+    first, second = res["frames"]
+    assert not set(first) & set(second) and len(first) + len(second) == 8
+    for cam in ("cam0", "cam1"):
+        ours, park = res["methods"]["calib3r-graph"]["cameras"][cam], res["methods"]["park"]["cameras"][cam]
+        assert 0 < ours["e_t_m"] < 4e-3 and ours["e_theta_rad"] < np.radians(0.15)
+        assert ours["e_t_m"] < park["e_t_m"] and ours["e_theta_rad"] < park["e_theta_rad"]
+    assert (out / "halves.md").read_text().count("\n|") == 4
 
 
 def test_unknown_method_is_an_input_error(tmp_path, capsys):
