@@ -73,17 +73,19 @@ def motion_diagnostics(base_T_ee: dict, frames) -> list:
             angles.append(np.linalg.norm(w))
             if angles[-1] > np.radians(2):
                 axes.append(w)  # angle-weighted axis
-    if not angles or np.degrees(max(angles)) < 10:
+    rotation_warned = not angles or np.degrees(max(angles)) < 10
+    if rotation_warned:
         msgs.append("the flange rotates less than 10 degrees between any two poses: the translation of ee_T_cam "
                     "is poorly constrained; add poses rotated 30-90 degrees about different axes")
     elif len(axes) >= 2:
         # Second singular value of the (angle-weighted) rotation axes: ~0 when all axes are parallel.
         _, s, Vt = np.linalg.svd(np.array(axes), full_matrices=False)
-        if s[1] < 0.15 * s[0]:
+        rotation_warned = s[1] < 0.15 * s[0]
+        if rotation_warned:
             msgs.append(f"all robot rotations are about nearly parallel axes (ee axis ~{_direction(Vt[0])}): "
                         f"the translation of ee_T_cam along that axis is poorly constrained; add "
                         "poses that rotate about a perpendicular axis")
-    if not msgs[-1:] or "rotat" not in msgs[-1]:
+    if not rotation_warned:  # otherwise the warning above already says the rotations are poor
         gain, axis = systematic_error_gain(base_T_ee, frames)
         if gain > 5.0:
             msgs.append(f"the flange rotates little about the axes perpendicular to ee direction {_direction(axis)}: "
