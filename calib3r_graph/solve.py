@@ -24,7 +24,8 @@ from calib3r_graph.graph import (Keys, NoiseOptions, add_depth_correction_priors
 from calib3r_graph.init import initialise
 from calib3r_graph.observations import build_observations
 from calib3r_graph.predictions import Predictions, split_view_id
-from calib3r_graph.uncertainty import covariance_diagnostics, motion_diagnostics, noise_calibration
+from calib3r_graph.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
+                                      systematic_error_gain)
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +200,9 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     metric = {c: (values.atDouble(keys.metric(c)), float(np.sqrt(marginals.marginalCovariance(keys.metric(c))[0, 0])))
               for c in cameras}
     timings["covariance"] = time.perf_counter() - t
-    diagnostics = motion_diagnostics(ds.base_T_ee, {split_view_id(v)[1] for v in views})
+    used_frames = {split_view_id(v)[1] for v in views}
+    diagnostics = motion_diagnostics(ds.base_T_ee, used_frames)
+    gain, gain_axis = systematic_error_gain(ds.base_T_ee, used_frames)
     for c in cameras:
         diagnostics += covariance_diagnostics(c, values.atPose3(keys.hand_eye(c)), covariance[c])
     for msg in diagnostics:
@@ -215,7 +218,9 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                  "views_used": len(views), "pairs_used": len(observations),
                  "matches_used": history[-1]["matches_used"],
                  "matches_total": int(sum(len(o) for o in observations)),
-                 "match_residual_median_rel": float(np.median(residuals))}
+                 "match_residual_median_rel": float(np.median(residuals)),
+                 # mm of ee_T_cam translation per mm of systematic relative-translation error (uncertainty.py)
+                 "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": gain_axis.tolist()}}
     return Solution(
         ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras},
         covariance=covariance, metric_scale=metric,
