@@ -119,6 +119,8 @@ def run_method(name, ds, preds, noise, frames=None, detections=None):
 
         obs = build_observations(p)
         comps = spanning_tree_poses(sorted(p.views), obs, pairwise_sim3(obs))
+        if not comps:
+            raise SolveError("no predicted views for these frames")
         biggest = max(comps, key=len)
         return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee), {}
     if name == "calib3r-graph":
