@@ -150,7 +150,7 @@ def cmd_convert(args):
 
 def cmd_compare(args):
     from calib3r_graph import compare as cmp
-    from calib3r_graph.dataset import load_dataset, load_ground_truth
+    from calib3r_graph.dataset import ee_T_cam_by_camera, load_dataset, load_ground_truth
     from calib3r_graph.errors import SolveError
     from calib3r_graph.graph import NoiseOptions
     from calib3r_graph.output import atomic_write_json, atomic_write_text, staged_directory
@@ -173,7 +173,7 @@ def cmd_compare(args):
     if gt is not None:
         reference, ref_name = gt["hand_eye"], "ground truth"
     elif result["methods"].get("pattern-ba", {}).get("status") == "ok":
-        reference = {c: gtsam_pose(v["T_ee_cam"]) for c, v in result["methods"]["pattern-ba"]["cameras"].items()}
+        reference = ee_T_cam_by_camera(result["methods"]["pattern-ba"]["cameras"])
         ref_name = "pattern-ba (no ground truth)"
     else:
         reference, ref_name = {}, None
@@ -194,19 +194,14 @@ def cmd_compare(args):
             cmp.sweep_plot(sweep, stage / "views_sweep.png", ref_name)
         if args.halves:
             halves = cmp.halves(ds, preds, noise, methods)
+            halves_md = cmp.halves_table(halves)
             atomic_write_json(stage / "halves.json", halves)
-            atomic_write_text(stage / "halves.md", cmp.halves_table(halves))
-            print(cmp.halves_table(halves))
+            atomic_write_text(stage / "halves.md", halves_md)
+            print(halves_md)
     for m, r in result["methods"].items():
         print(f"{m:16s} {r['status']:40.40s} {r['seconds']:6.1f} s")
     print(f"wrote {out}/comparison.json" + (", comparison.md, comparison.png" if ref_name else "") +
           (", halves.json, halves.md" if args.halves else ""))
-
-
-def gtsam_pose(T):
-    import gtsam
-
-    return gtsam.Pose3(np.asarray(T, dtype=float))
 
 
 def cmd_import(args):

@@ -19,6 +19,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
+from calib3r_graph.dataset import ee_T_cam_by_camera
 from calib3r_graph.errors import Calib3rError, SolveError
 from calib3r_graph.geometry import hand_eye_rotation
 from calib3r_graph.predictions import Predictions, split_view_id
@@ -159,9 +160,9 @@ def errors_against(result: dict, reference: dict) -> dict:
     out = {}
     for m, r in result["methods"].items():
         out[m] = {}
-        for c, v in r["cameras"].items():
+        for c, X in ee_T_cam_by_camera(r["cameras"]).items():
             if c in reference:
-                et, er = pose_error(gtsam.Pose3(np.array(v["T_ee_cam"])), reference[c])
+                et, er = pose_error(X, reference[c])
                 out[m][c] = (et, np.radians(er))
     return out
 
@@ -220,8 +221,7 @@ def halves(ds, preds, noise, methods) -> dict:
     for m in methods:
         a, b = first["methods"][m], second["methods"][m]
         bad = [f"{h} half: {r['status']}" for h, r in (("first", a), ("second", b)) if r["status"] != "ok"]
-        reference = {c: gtsam.Pose3(np.array(v["T_ee_cam"])) for c, v in b["cameras"].items()}
-        errs = errors_against({"methods": {m: a}}, reference)[m] if not bad else {}
+        errs = errors_against({"methods": {m: a}}, ee_T_cam_by_camera(b["cameras"]))[m] if not bad else {}
         out[m] = {"cameras": {c: {"e_t_m": et, "e_theta_rad": er} for c, (et, er) in errs.items()},
                   "status": "; ".join(bad) or "ok"}
     return {"frames": split, "methods": out}

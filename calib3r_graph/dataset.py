@@ -280,6 +280,12 @@ def pose_from_dict(d) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Quaternion(d["qw"], d["qx"], d["qy"], d["qz"]), np.array([d["x"], d["y"], d["z"]]))
 
 
+def ee_T_cam_by_camera(cameras: dict) -> dict:
+    """{camera: Pose3} from the ``{camera: {"T_ee_cam": 4x4, ...}}`` of a calibration.json or a
+    comparison.json method."""
+    return {c: gtsam.Pose3(np.asarray(v["T_ee_cam"], dtype=float)) for c, v in cameras.items()}
+
+
 def pose_to_dict(pose: gtsam.Pose3) -> dict:
     q = pose.rotation().toQuaternion()
     t = pose.translation()

@@ -10,7 +10,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from calib3r_graph.dataset import load_ground_truth
+from calib3r_graph.dataset import ee_T_cam_by_camera, load_ground_truth
 from calib3r_graph.errors import InputError
 from calib3r_graph.geometry import pose_error
 
@@ -32,7 +32,7 @@ def load_calibration(result_dir) -> dict:
         raise InputError(path, "missing (run 'calib3r-graph solve' first)")
     try:
         calib = json.loads(path.read_text())
-        return {c: gtsam.Pose3(np.asarray(v["T_ee_cam"], dtype=float)) for c, v in calib["cameras"].items()}
+        return ee_T_cam_by_camera(calib["cameras"])
     except (json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
         raise InputError(path, f"not a calib3r-calibration/1 file ({e})") from None
 

@@ -4,13 +4,12 @@ the images and calibrate sensible intrinsics."""
 
 import json
 
-import gtsam
 import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
 from calib3r_graph.compare import errors_against
-from calib3r_graph.dataset import load_dataset
+from calib3r_graph.dataset import ee_T_cam_by_camera, load_dataset
 from calib3r_graph.importers import import_recording
 from calib3r_graph.uncertainty import systematic_error_gain
 from tests.conftest import SHARED
@@ -61,7 +60,7 @@ def import_and_compare(tmp_path, fmt, src, board, methods) -> dict:
     assert main(["-q", "compare", str(root), "--out", str(out), "--predictions", "colmap", "--methods", methods]) == 0
     res = json.loads((out / "comparison.json").read_text())
     assert all(r["status"] == "ok" for r in res["methods"].values())
-    ref = {"cam0": gtsam.Pose3(np.array(res["methods"]["pattern-ba"]["cameras"]["cam0"]["T_ee_cam"]))}
+    ref = ee_T_cam_by_camera(res["methods"]["pattern-ba"]["cameras"])
     return {m: e["cam0"] for m, e in errors_against(res, ref).items()}
 
 
