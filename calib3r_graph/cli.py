@@ -50,14 +50,19 @@ def cmd_solve(args):
 
     ds, preds, opt, sol = _solve_dataset(args)
     if args.jackknife:
-        from calib3r_graph.uncertainty import jackknife
+        from calib3r_graph.jackknife import jackknife
 
         sol.stats["jackknife"] = jackknife(ds, preds, opt, sol, progress=not args.quiet)
     out = _out_dir(args)
-    summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud)
+    report = None
+    if not args.no_report:
+        from calib3r_graph.report import solve_report_writer
+
+        report = solve_report_writer(ds, preds, sol, opt.noise)
+    summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud, extra=report)
     print(summary, end="")
     print(f"  wrote {out}/calibration.json, trajectory.csv, summary.txt"
-          + ("" if args.no_cloud else ", reconstruction.ply"))
+          + ("" if args.no_cloud else ", reconstruction.ply") + ("" if args.no_report else ", report.html"))
 
 
 def cmd_simulate(args):
@@ -84,22 +89,19 @@ def _out_dir(args) -> Path:
     return Path(args.out) if args.out else Path("results") / Path(args.dataset).resolve().name
 
 
+def _announce(line: str):
+    """Tell the user, on stderr (also with -q), e.g. which frontend made the predictions."""
+    print(line, file=sys.stderr)
+
+
 def _solve_dataset(args):
     from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.predictions import available_predictions, choose_predictions, load_predictions
+    from calib3r_graph.frontends import ensure_predictions
+    from calib3r_graph.predictions import load_predictions
     from calib3r_graph.solve import SolveOptions, solve
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
-    if args.predictions is None and not available_predictions(ds.root):
-        from calib3r_graph.frontends import best_frontend, run_frontend
-
-        frontend = best_frontend(ds)
-        log.info("no predictions in %s: running the %s frontend (cached in predictions/%s/)", ds.root, frontend,
-                 frontend)
-        print(f"no predictions: made them with the '{frontend}' frontend (cached in "
-              f"{ds.root / 'predictions' / frontend})", file=sys.stderr)
-        run_frontend(ds, frontend, progress=not args.quiet)
-    name = choose_predictions(ds, args.predictions)
+    name = ensure_predictions(ds, args.predictions, progress=not args.quiet, announce=_announce)
     preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
                        irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
@@ -118,7 +120,7 @@ def cmd_plan(args):
     candidates = read_robot_poses(Path(args.candidates), unit, "the --candidates file")  # fail before solving
     ds, preds, opt, sol = _solve_dataset(args)
     ranked = rank_candidates(ds, preds, sol, opt.noise, candidates)
-    t_now, r_now = largest_sigmas([np.asarray(c) for c in sol.covariance.values()])
+    t_now, r_now = largest_sigmas([np.asarray(c) for c in (sol.covariance_model or sol.covariance).values()])
     print(f"now: largest sigma {t_now:.3f} mm, {r_now:.4f} deg ({len(sol.base_T_cam)} views)")
     print(f"{'rank':>4} {'candidate':>10} {'gain (nats)':>11} {'sigma t after':>14} {'sigma r after':>14}  overlaps")
     for i, c in enumerate(ranked, 1):
@@ -154,21 +156,32 @@ def cmd_compare(args):
     from calib3r_graph.errors import SolveError
     from calib3r_graph.graph import NoiseOptions
     from calib3r_graph.output import atomic_write_json, atomic_write_text, staged_directory
-    from calib3r_graph.predictions import available_predictions, choose_predictions, load_predictions
+    from calib3r_graph.predictions import load_predictions
 
     ds = load_dataset(args.dataset)
-    preds = None
-    if available_predictions(ds.root) or args.predictions:
-        name = choose_predictions(ds, args.predictions)
-        preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames))
-    noise = NoiseOptions()
-    if preds is not None and "match_noise_px" in preds.info:
-        noise = NoiseOptions(pixel_sigma_px=float(preds.info["match_noise_px"]))
     methods = args.methods.split(",") if args.methods else cmp.METHODS
     unknown = set(methods) - set(cmp.METHODS)
     if unknown:
         raise InputError("--methods", f"unknown method(s) {sorted(unknown)}; choose from {cmp.METHODS}")
+    preds = None
+    if args.predictions or set(methods) & {"jcr-predictions", "calib3r-graph"}:
+        from calib3r_graph.frontends import ensure_predictions
+
+        try:  # as solve does: the best frontend, cached, when the dataset has no predictions
+            name = ensure_predictions(ds, args.predictions, progress=not args.quiet, announce=_announce)
+        except InputError:
+            raise
+        except Calib3rError as e:  # e.g. no images for a frontend: the pattern methods can still run
+            if args.predictions:
+                raise
+            _announce(f"warning: no predictions for jcr-predictions and calib3r-graph ({e})")
+        else:
+            preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames))
+    noise = NoiseOptions()
+    if preds is not None and "match_noise_px" in preds.info:
+        noise = NoiseOptions(pixel_sigma_px=float(preds.info["match_noise_px"]))
     result = cmp.compare(ds, preds, noise, methods)
+    result["predictions"] = preds.name if preds is not None else None
     gt = load_ground_truth(ds.root)
     if gt is not None:
         reference, ref_name = gt["hand_eye"], "ground truth"
@@ -178,10 +191,23 @@ def cmd_compare(args):
     else:
         reference, ref_name = {}, None
     out = Path(args.out)
+    sweep = halves = None
     with staged_directory(out) as stage:
         atomic_write_json(stage / "comparison.json", result)
+        if ref_name and ref_name.startswith("pattern-ba"):
+            from calib3r_graph.consistency import consistency, sigma_table
+
+            result["in_sigmas"] = consistency(result, "pattern-ba")
+            atomic_write_json(stage / "comparison.json", result)
         if ref_name:
             table = cmp.markdown_table(result, reference, ref_name)
+            from calib3r_graph.evaluate import metric_scale_table
+
+            if metric_scale_table(result):
+                table += "\n" + metric_scale_table(result)
+            if result.get("in_sigmas"):
+                table += "\n" + sigma_table(result["in_sigmas"], "Difference to pattern-ba per ee axis, in sigmas "
+                                             "(each method's total sigma combined with pattern-ba's; acceptance 3σ):")
             atomic_write_text(stage / "comparison.md", table)
             cmp.bar_plot(result, reference, stage / "comparison.png", f"{ds.root.name}: errors against {ref_name}")
             print(table)
@@ -193,15 +219,30 @@ def cmd_compare(args):
             atomic_write_json(stage / "views_sweep.json", sweep)
             cmp.sweep_plot(sweep, stage / "views_sweep.png", ref_name)
         if args.halves:
+            from calib3r_graph import consistency
+
             halves = cmp.halves(ds, preds, noise, methods)
             halves_md = cmp.halves_table(halves)
+            if halves["in_sigmas"]:
+                halves_md += "\n" + consistency.sigma_table(halves["in_sigmas"], "The halves' difference per ee axis, "
+                                                            "in sigmas of a difference (acceptance: 3σ):")
+            if ref_name and ref_name.startswith("pattern-ba"):
+                check = consistency.reference_validation(halves, "pattern-ba", args.tolerance_mm, args.tolerance_deg)
+                result["reference_validation"] = check
+                halves_md += "\n" + check["reason"] + "\n"
+                atomic_write_json(stage / "comparison.json", result)
             atomic_write_json(stage / "halves.json", halves)
             atomic_write_text(stage / "halves.md", halves_md)
             print(halves_md)
+        if not args.no_report:
+            from calib3r_graph.report import compare_report_html
+
+            atomic_write_text(stage / "report.html", compare_report_html(ds.root, result, reference, ref_name,
+                                                                         sweep, halves))
     for m, r in result["methods"].items():
         print(f"{m:16s} {r['status']:40.40s} {r['seconds']:6.1f} s")
     print(f"wrote {out}/comparison.json" + (", comparison.md, comparison.png" if ref_name else "") +
-          (", halves.json, halves.md" if args.halves else ""))
+          (", halves.json, halves.md" if args.halves else "") + ("" if args.no_report else ", report.html"))
 
 
 def cmd_import(args):
@@ -212,11 +253,9 @@ def cmd_import(args):
         raise InputError(dst, "exists and is not empty (use --force to write into it)")
     board = None
     if args.board:
-        try:
-            board = tuple(int(x) for x in args.board.lower().split("x"))
-            assert len(board) == 2
-        except (ValueError, AssertionError):
-            raise InputError("--board", f"'{args.board}' is not COLSxROWS (inner corners), e.g. 28x17") from None
+        from calib3r_graph.boards import parse_board
+
+        board = parse_board(args.board)  # COLSxROWS inner corners, or charuco:/circles:/acircles: specs
     print(import_recording(args.format, args.src, dst, board, progress=not args.quiet))
 
 
@@ -225,10 +264,121 @@ def cmd_evaluate(args):
     from calib3r_graph.output import atomic_write_json
 
     report = evaluate(args.result, args.dataset)
-    for cam, e in report["hand_eye"].items():
+    for cam, e in report.get("hand_eye", {}).items():
         print(f"{cam}: e_t = {e['e_t_m'] * 100:.3f} cm ({e['e_t_m'] * 1e3:.2f} mm)   "
               f"e_theta = {e['e_theta_rad']:.5f} rad ({np.degrees(e['e_theta_rad']):.3f} deg)")
+    m = report.get("metric_scale")
+    if m and "m_s_mm" in m:
+        print(f"metric scale on the board ({m['detections']} views, {m['source']}): m_s - s = "
+              f"{m['m_s_minus_s_mm']:+.3f} mm, sigma_s = {m['sigma_s_mm']:.3f} mm, delta_s = "
+              f"{m['delta_s_percent']:.2f} % (s = {m['square_size_mm']:.2f} mm)")
+    elif m:
+        print(f"metric scale on the board: {m['status']}")
+    if report.get("not_evaluated"):
+        print(f"not evaluated: {report['not_evaluated']}")
+    r = report.get("reconstruction")
+    if r:
+        print(f"reconstruction to the true surface: median {r['median_mm']:.2f} mm, 90 % {r['p90_mm']:.2f} mm "
+              f"({r['points']} points)")
     atomic_write_json(Path(args.result) / "evaluation.json", report)
+
+
+def _refuse_non_empty(dst: Path, force: bool):
+    if dst.exists() and (not dst.is_dir() or any(dst.iterdir())) and not force:
+        raise InputError(dst, "exists and is not empty (use --force to write into it)")
+
+
+def cmd_import_files(args):
+    from calib3r_graph.import_files import import_files
+
+    _refuse_non_empty(Path(args.dst), args.force)
+    print(import_files(args.dst, args.images, args.poses, args.pose_format, args.unit, args.intrinsics, args.board,
+                       progress=not args.quiet))
+
+
+def cmd_import_rosbag(args):
+    from calib3r_graph.io.rosbag import RosbagOptions, import_rosbag
+
+    _refuse_non_empty(Path(args.dst), args.force)
+    bounds = {k: getattr(args, k) for k in ("max_speed_mm_s", "max_speed_deg_s", "min_motion_mm", "min_motion_deg",
+                                            "sync_tolerance_s") if getattr(args, k) is not None}
+    opt = RosbagOptions(base_frame=args.base_frame, ee_frame=args.ee_frame, image_topics=args.image_topic,
+                        depth_topics=args.depth_topic or [], camera_info_topics=args.camera_info_topic or [],
+                        intrinsics=args.intrinsics or [], **bounds)
+    print(import_rosbag(args.bag, args.dst, opt))
+
+
+def cmd_export(args):
+    from calib3r_graph.export import export
+    from calib3r_graph.output import atomic_write_text
+
+    text = export(args.result, args.format, args.parent, args.child, args.camera, args.child_convention)
+    if args.out:
+        atomic_write_text(Path(args.out), text)
+        print(f"wrote {args.out}", file=sys.stderr)
+    else:
+        print(text, end="")
+
+
+def _add_import_files_args(p):
+    # Parsers are built on every run: the modules behind these commands are imported only in cmd_*.
+    p.add_argument("dst", help="output dataset folder")
+    p.add_argument("--images", action="append", required=True,
+                   help="a folder or glob of one camera's images; repeat per camera (cam0, cam1, ...)")
+    p.add_argument("--poses", required=True, help="a pose file (one pose per line), or a folder or glob of one "
+                                                  "file per frame (.txt, .npy, .json, .yaml)")
+    p.add_argument("--pose-format", required=True,
+                   help="matrix, xyz-quat-xyzw, xyz-quat-wxyz, xyz-rotvec, xyz-euler:ORDER:deg|rad (KUKA: "
+                        "xyz-euler:zyx:deg), xyz-euler:fixed-ORDER:deg|rad (ROS rpy: fixed-xyz), visp")
+    p.add_argument("--unit", choices=["m", "mm"], help="translation unit of the poses (default m; checked against "
+                                                       "the images when there is a board)")
+    p.add_argument("--intrinsics", action="append", help="ROS camera_info YAML, OpenCV FileStorage YAML/XML or "
+                                                         "Kalibr camchain; repeat per camera")
+    p.add_argument("--board", help="board in the images: COLSxROWS:SQUARE_M (inner corners), "
+                                   "charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICT], circles:COLSxROWS:SPACING_M, "
+                                   "acircles:COLSxROWS:SPACING_M")
+    p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    p.set_defaults(func=cmd_import_files)
+
+
+def _add_import_rosbag_args(p):
+    p.add_argument("bag", help="a ROS 1 .bag file, or a ROS 2 bag folder (sqlite3 or MCAP)")
+    p.add_argument("dst", help="output dataset folder")
+    p.add_argument("--base-frame", required=True, help="the robot's base frame in /tf (e.g. base_link)")
+    p.add_argument("--ee-frame", required=True, help="the flange frame the camera is mounted on (e.g. tool0)")
+    p.add_argument("--image-topic", action="append", required=True,
+                   help="Image or CompressedImage topic; repeat per camera (cam0, cam1, ...)")
+    p.add_argument("--depth-topic", action="append", help="registered depth (16UC1 mm or 32FC1 m), per camera")
+    p.add_argument("--camera-info-topic", action="append",
+                   help="CameraInfo topic per camera (default: camera_info beside the image topic)")
+    p.add_argument("--intrinsics", action="append", help="an intrinsics file per camera instead of camera_info")
+    g = p.add_argument_group("frame selection")
+    g.add_argument("--max-speed-mm-s", type=float, help="skip images taken while the flange moves faster than "
+                                                        "this within 0.1 s (default 10)")
+    g.add_argument("--max-speed-deg-s", type=float, help="the same for rotation (default 2)")
+    g.add_argument("--min-motion-mm", type=float, help="skip images whose flange pose is within this and "
+                                                       "--min-motion-deg of the last kept one (default 5)")
+    g.add_argument("--min-motion-deg", type=float, help="(default 1)")
+    g.add_argument("--sync-tolerance-s", type=float, help="largest stamp difference between a frame's images of "
+                                                          "different cameras, and of depth (default 0.05)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    p.set_defaults(func=cmd_import_rosbag)
+
+
+EXPORT_FORMATS = ("urdf", "xacro", "ros2-launch", "ros1-launch", "tf-yaml", "easy-handeye")  # export.FORMATS
+
+
+def _add_export_args(p):
+    p.add_argument("result", help="a folder written by solve (calibration.json)")
+    p.add_argument("--format", choices=EXPORT_FORMATS, required=True)
+    p.add_argument("--parent", required=True, help="the flange link the camera is mounted on (e.g. tool0)")
+    p.add_argument("--child", required=True, help="the camera frame to create (e.g. camera_color_optical_frame)")
+    p.add_argument("--camera", help="which camera of the result (default: the only one)")
+    p.add_argument("--child-convention", choices=["optical", "camera_link"], default="optical",
+                   help="optical: z forward, x right, y down (REP 103/105, default); camera_link: x forward, "
+                        "y left, z up")
+    p.add_argument("--out", help="write to this file (atomically) instead of stdout")
+    p.set_defaults(func=cmd_export)
 
 
 def _add_solve_args(s):
@@ -258,6 +408,7 @@ def build_parser():
     s = sub.add_parser("solve", help="joint hand-eye calibration and metric reconstruction of a dataset")
     _add_solve_args(s)
     s.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
+    s.add_argument("--no-report", action="store_true", help="skip report.html")
     s.add_argument("--jackknife", action="store_true",
                    help="cross-check the covariance with leave-one-pose-out solves (n extra solves)")
     s.set_defaults(func=cmd_solve)
@@ -269,7 +420,7 @@ def build_parser():
 
     pr = sub.add_parser("predict", help="make predictions/<name>/ from the dataset's images (and depth)")
     pr.add_argument("dataset", help="dataset folder (calib3r-dataset/1)")
-    pr.add_argument("--frontend", choices=["rgbd", "colmap"], required=True)
+    pr.add_argument("--frontend", choices=["rgbd", "colmap", "pairwise"], required=True)
     pr.add_argument("--name", help="predictions name (default: the frontend's name)")
     pr.add_argument("--skip-missing", action="store_true", help="drop frames without a robot pose, with a warning")
     pr.set_defaults(func=cmd_predict)
@@ -314,15 +465,28 @@ def build_parser():
     c.add_argument("--repeats", type=int, default=3, help="random subsets per number of poses")
     c.add_argument("--halves", action="store_true",
                    help="also solve every method on each half of the frames and report how far apart the two are")
+    c.add_argument("--tolerance-mm", type=float, default=5.0,
+                   help="with --halves: the tolerance the pattern reference must repeat 3x better than (default 5)")
+    c.add_argument("--tolerance-deg", type=float, default=0.3, help="the same in rotation (default 0.3)")
+    c.add_argument("--no-report", action="store_true", help="skip report.html")
     c.set_defaults(func=cmd_compare)
 
-    im = sub.add_parser("import", help="convert a public recording (rwhe, tabb) into a dataset")
-    im.add_argument("format", choices=["rwhe", "tabb"])
-    im.add_argument("src", help="the recording's folder, as published")
-    im.add_argument("dst", help="output dataset folder")
-    im.add_argument("--board", help="chessboard inner corners COLSxROWS (rwhe needs it; tabb reads its file)")
-    im.add_argument("--force", action="store_true", help="write into a non-empty folder")
-    im.set_defaults(func=cmd_import)
+    im_all = sub.add_parser("import", help="convert a recording (rwhe, tabb, your files, a ROS bag) into a dataset")
+    im_sub = im_all.add_subparsers(dest="format", required=True)
+    for fmt in ("rwhe", "tabb"):
+        im = im_sub.add_parser(fmt, help=f"the public {fmt} recording format")
+        im.add_argument("src", help="the recording's folder, as published")
+        im.add_argument("dst", help="output dataset folder")
+        im.add_argument("--board", help="chessboard inner corners COLSxROWS (rwhe needs it; tabb reads its file), "
+                                        "or charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICT], circles:/acircles:COLSxROWS:"
+                                        "SPACING_M")
+        im.add_argument("--force", action="store_true", help="write into a non-empty folder")
+        im.set_defaults(func=cmd_import)
+    _add_import_files_args(im_sub.add_parser("files", help="images per camera and a robot pose file"))
+    _add_import_rosbag_args(im_sub.add_parser("rosbag", help="a ROS 1 .bag or ROS 2 bag (sqlite3, MCAP)"))
+
+    ex = sub.add_parser("export", help="write a solve result as URDF, xacro, ROS launch, tf YAML or easy_handeye")
+    _add_export_args(ex)
 
     e = sub.add_parser("evaluate", help="compare a solve result with the dataset's ground truth")
     e.add_argument("result", help="folder written by solve")
@@ -345,10 +509,17 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("calib3r-graph: interrupted", file=sys.stderr)
         return 130
-    except Exception as e:  # a bug: one line, the traceback with --debug
+    except Exception as e:  # a library's failure or a bug: one line, the traceback with --debug
         if args.debug:
             raise
-        print(f"calib3r-graph: internal error: {type(e).__name__}: {e} (run with --debug for the traceback)",
+        from calib3r_graph.errors import library_error
+
+        described = library_error(e)
+        if described is not None:
+            print(f"calib3r-graph: error: {described[0]} (run with --debug for the details)", file=sys.stderr)
+            return described[1]
+        first = next((line for line in str(e).splitlines() if line.strip()), "")
+        print(f"calib3r-graph: internal error: {type(e).__name__}: {first} (run with --debug for the traceback)",
               file=sys.stderr)
         return 1
     return 0

@@ -13,16 +13,17 @@ A method that cannot run (no pattern, no images) is reported with status "error:
 
 import dataclasses
 import logging
+import tempfile
 import time
 from pathlib import Path
 
 import gtsam
 import numpy as np
 
-from calib3r_graph.dataset import ee_T_cam_by_camera
+from calib3r_graph.dataset import ee_T_cam_by_camera, subset_dataset
 from calib3r_graph.errors import Calib3rError, SolveError
 from calib3r_graph.geometry import hand_eye_rotation
-from calib3r_graph.predictions import Predictions, split_view_id
+from calib3r_graph.predictions import Predictions, split_view_id, subset_predictions
 from calib3r_graph.results import uncertainty_report
 
 log = logging.getLogger(__name__)
@@ -30,18 +31,6 @@ log = logging.getLogger(__name__)
 PATTERN_METHODS = ["tsai", "park", "horaud", "andreff", "daniilidis", "pattern-ba"]
 METHODS = ["tsai", "park", "horaud", "andreff", "daniilidis", "pattern-ba", "jcr-colmap", "jcr-predictions",
            "calib3r-graph"]
-
-
-def subset_dataset(ds, frames):
-    frames = set(frames)
-    return dataclasses.replace(ds, base_T_ee={f: p for f, p in ds.base_T_ee.items() if f in frames})
-
-
-def subset_predictions(preds: Predictions, frames) -> Predictions:
-    frames = set(frames)
-    views = {v: p for v, p in preds.views.items() if split_view_id(v)[1] in frames}
-    pairs = [p for p in preds.pairs if p.view_a in views and p.view_b in views]
-    return Predictions(preds.name, preds.info, views, pairs)
 
 
 def two_stage_hand_eye(trajectory: dict, base_T_ee: dict, scales=np.logspace(-4, 4, 161)) -> dict:
@@ -80,7 +69,7 @@ def two_stage_hand_eye(trajectory: dict, base_T_ee: dict, scales=np.logspace(-4,
     return out
 
 
-def run_method(name, ds, preds, noise, frames=None, detections=None):
+def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrinsics=False):
     """({camera: ee_T_cam}, {camera: 6x6 covariance}) of one method on the given frames (all if
     None); the covariance is empty for methods that do not estimate one.
 
@@ -104,7 +93,7 @@ def run_method(name, ds, preds, noise, frames=None, detections=None):
         init = {c: pattern.opencv_hand_eye(sub, d, "park") for c, d in dets.items() if len(d) >= 3}
         if not init:
             raise SolveError("the board is not found in enough images")
-        res = pattern.pattern_ba(sub, {c: dets[c] for c in init}, noise, init)
+        res = pattern.pattern_ba(sub, {c: dets[c] for c in init}, noise, init, refine_intrinsics=not hold_intrinsics)
         return res.ee_T_cam, res.covariance
     if name == "jcr-colmap":
         from calib3r_graph.frontends.colmap import colmap_trajectory
@@ -128,20 +117,42 @@ def run_method(name, ds, preds, noise, frames=None, detections=None):
         from calib3r_graph.solve import SolveOptions, solve
 
         sol = solve(sub, p, SolveOptions(noise=noise, progress=False))
+        if frames is None and ds.pattern and detections is not None:
+            _metric_scale(name, sub, p, sol, detections)
         return sol.ee_T_cam, sol.covariance
     raise ValueError(name)
 
 
-def compare(ds, preds, noise, methods=METHODS, frames=None) -> dict:
+def _metric_scale(name, ds, preds, sol, detections):
+    """The paper's δ_s of a method's reconstruction (evaluate.metric_scale_accuracy), left in
+    ``detections`` for compare(), with its time, which is not the method's."""
+    from calib3r_graph import pattern
+    from calib3r_graph.evaluate import metric_scale_accuracy
+
+    t = time.perf_counter()
+    key = tuple(ds.base_T_ee)
+    if key not in detections:
+        detections[key] = {c: pattern.detect(ds, c) for c in ds.cameras}
+        detections[("seconds",) + key] = time.perf_counter() - t
+    try:
+        detections[("metric_scale", name)] = metric_scale_accuracy(ds, preds, sol, detections[key])
+    except Calib3rError as e:
+        detections[("metric_scale", name)] = {"status": f"error: {e}"}
+    detections[("metric_scale_seconds", name)] = time.perf_counter() - t
+
+
+def compare(ds, preds, noise, methods=METHODS, frames=None, hold_intrinsics=False) -> dict:
+    """Every method on the same frames; ``hold_intrinsics``: pattern-ba keeps the dataset's camera
+    model instead of refining it (used on halves: the camera is the same camera)."""
     results, detections = {}, {}
     for m in methods:
         t = time.perf_counter()
         try:
-            X, cov = run_method(m, ds, preds, noise, frames, detections)
+            X, cov = run_method(m, ds, preds, noise, frames, detections, hold_intrinsics)
             status = "ok" if X else "error: no camera could be calibrated"
         except (Calib3rError, np.linalg.LinAlgError, RuntimeError, ValueError) as e:
             X, cov, status = {}, {}, f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
-        seconds = time.perf_counter() - t
+        seconds = time.perf_counter() - t - detections.pop(("metric_scale_seconds", m), 0.0)
         key = ("seconds",) + tuple(subset_dataset(ds, frames).base_T_ee if frames is not None else ds.base_T_ee)
         if m in PATTERN_METHODS and key in detections and seconds < detections[key]:
             seconds += detections[key]  # every pattern method pays the (shared) board detection
@@ -149,6 +160,8 @@ def compare(ds, preds, noise, methods=METHODS, frames=None) -> dict:
         for c, C in cov.items():  # the method's own uncertainty, where it has one (per axis, ee frame)
             cams[c]["sigma_ee_frame"] = uncertainty_report(X[c], C)["sigma_ee_frame"]
         results[m] = {"cameras": cams, "seconds": seconds, "status": status}
+        if ("metric_scale", m) in detections:  # the reconstruction's δ_s, where the method has one
+            results[m]["metric_scale"] = detections.pop(("metric_scale", m))
         log.info("%s: %s (%.1f s)", m, status, results[m]["seconds"])
     return {"methods": results}
 
@@ -211,12 +224,16 @@ def halves(ds, preds, noise, methods) -> dict:
     Without ground truth this is the honest measure of how far to trust a method's result: a
     bias that every pose shares (robot kinematics, a camera model) moves it by an amount that
     depends on which poses were recorded, which no sigma and no leave-one-out jackknife shows.
-    The two halves usually cover different parts of the workspace. Returns ``{"frames":
-    [first, second], "methods": {NAME: {"cameras": {CAM: {"e_t_m", "e_theta_rad"}}, "status"}}}``.
+    The two halves usually cover different parts of the workspace. pattern-ba keeps the dataset's
+    camera model on each half (the camera is the same on both; refining it on half the poses
+    lets the focal length absorb robot error: rwhe_kuka_1's first half moved fx 0.2 % and the
+    hand-eye 11 mm). Returns ``{"frames": [first, second], "methods": {NAME: {"cameras": {CAM:
+    {"e_t_m", "e_theta_rad"}}, "status"}}, "in_sigmas": the difference per ee axis in sigmas of
+    a difference (consistency.py), "halves": both compare() results}``.
     """
     frames = list(ds.frames)
     split = [frames[:len(frames) // 2], frames[len(frames) // 2:]]
-    first, second = (compare(ds, preds, noise, methods, f) for f in split)
+    first, second = (compare(ds, preds, noise, methods, f, hold_intrinsics=True) for f in split)
     out = {}
     for m in methods:
         a, b = first["methods"][m], second["methods"][m]
@@ -224,7 +241,10 @@ def halves(ds, preds, noise, methods) -> dict:
         errs = errors_against({"methods": {m: a}}, ee_T_cam_by_camera(b["cameras"]))[m] if not bad else {}
         out[m] = {"cameras": {c: {"e_t_m": et, "e_theta_rad": er} for c, (et, er) in errs.items()},
                   "status": "; ".join(bad) or "ok"}
-    return {"frames": split, "methods": out}
+    from calib3r_graph.consistency import halves_consistency
+
+    return {"frames": split, "methods": out, "in_sigmas": halves_consistency(first, second),
+            "halves": {"first": first, "second": second}}
 
 
 def halves_table(result: dict) -> str:
@@ -243,20 +263,90 @@ def halves_table(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def views_sweep(ds, preds, noise, views_list, repeats, methods, reference, seed=0) -> dict:
-    """Errors of every method against the number of robot poses, over random subsets."""
-    rng = np.random.default_rng(seed)
+def rotates_about_two_axes(base_T_ee: dict, frames, min_angle_deg=5.0, min_axis_deg=20.0) -> bool:
+    """Whether the flange's relative motions among ``frames`` include two rotations of at least
+    ``min_angle_deg`` about axes at least ``min_axis_deg`` apart (in the flange frame): what
+    AX = XB needs to fix the hand-eye rotation and translation."""
+    frames = list(frames)
+    axes = []
+    for i, a in enumerate(frames):
+        for b in frames[i + 1:]:
+            w = gtsam.Rot3.Logmap(base_T_ee[a].between(base_T_ee[b]).rotation())
+            if np.linalg.norm(w) >= np.radians(min_angle_deg):
+                axes.append(w / np.linalg.norm(w))
+    if len(axes) < 2:
+        return False
+    axes = np.array(axes)
+    return bool(np.abs(axes @ axes.T).min() <= np.cos(np.radians(min_axis_deg)))
+
+
+def random_subsets(ds, n: int, repeats: int, seed=0, max_draws=10000) -> list:
+    """``repeats`` distinct, seeded random subsets of ``n`` frames (recording order) whose flange
+    motions rotate about at least two axes; fewer if the recording has fewer such subsets."""
+    rng = np.random.default_rng([seed, n])
     frames = list(ds.frames)
+    out, seen = [], set()
+    for _ in range(max_draws):
+        if len(out) == repeats or n > len(frames):
+            break
+        pick = tuple(frames[i] for i in sorted(rng.choice(len(frames), n, replace=False)))
+        if pick in seen:
+            continue
+        seen.add(pick)
+        if rotates_about_two_axes(ds.base_T_ee, pick):
+            out.append(list(pick))
+    return out
+
+
+def views_sweep(ds, preds, noise, views_list, repeats, methods, reference, seed=0, predict_subset=None) -> dict:
+    """Errors of every method against the number of robot poses, over seeded random subsets that
+    rotate about at least two axes (:func:`random_subsets`). Every run is a row; a method that
+    fails on a subset gives a row with its status and no errors, so solve rates can be counted.
+
+    ``predict_subset(frames) -> Predictions``: the predictions made from the subset's images
+    alone. By default, predictions of the pairwise frontend are re-made per subset this way
+    (:func:`subset_predictor`); others (colmap, a foundation model's) are the full recording's,
+    restricted to the subset, so their depth saw the other frames too."""
+    with tempfile.TemporaryDirectory(prefix="calib3r-sweep-") as cache:
+        if predict_subset is None:
+            predict_subset = subset_predictor(ds, preds, cache)
+        return _views_sweep(ds, preds, noise, views_list, repeats, methods, reference, seed, predict_subset)
+
+
+def subset_predictor(ds, preds, cache_dir):
+    """For predictions made by the pairwise frontend: ``frames -> Predictions`` from those frames'
+    images alone, with the frontend's options (features and pair geometries cached in
+    ``cache_dir``, so each is computed once per sweep). None for other predictions."""
+    if preds is None or not str(preds.info.get("source", "")).startswith("calib3r-graph pairwise"):
+        return None
+    from calib3r_graph.frontends.pairwise import PairwiseOptions, pairwise_predictions
+
+    known = {f.name for f in dataclasses.fields(PairwiseOptions)}
+    opt = PairwiseOptions(**{k: v for k, v in preds.info.get("options", {}).items() if k in known})
+    return lambda frames: pairwise_predictions(subset_dataset(ds, frames), opt=opt, cache_dir=cache_dir,
+                                               progress=False, name=preds.name)
+
+
+def _views_sweep(ds, preds, noise, views_list, repeats, methods, reference, seed, predict_subset) -> dict:
     rows = []
     for n in views_list:
-        if n > len(frames):
-            continue
-        for r in range(repeats):
-            sub = sorted(rng.choice(frames, n, replace=False))
-            res = compare(ds, preds, noise, methods, sub)
-            for m, per_cam in errors_against(res, reference).items():
-                for c, (et, er) in per_cam.items():
-                    rows.append({"views": n, "repeat": r, "method": m, "camera": c, "e_t_m": et, "e_theta_rad": er})
+        for r, sub in enumerate(random_subsets(ds, n, repeats, seed)):
+            p = preds
+            if predict_subset is not None:
+                try:
+                    p = predict_subset(sub)
+                except (Calib3rError, RuntimeError, ValueError) as e:
+                    p = None
+                    log.warning("frames %s: no predictions (%s)", ",".join(sub), e)
+            res = compare(ds, p, noise, methods, sub)
+            errs = errors_against(res, reference)
+            for m, r_m in res["methods"].items():
+                for c, (et, er) in errs.get(m, {}).items():
+                    rows.append({"views": n, "repeat": r, "frames": sub, "method": m, "camera": c, "e_t_m": et,
+                                 "e_theta_rad": er, "status": r_m["status"]})
+                if not errs.get(m):
+                    rows.append({"views": n, "repeat": r, "frames": sub, "method": m, "camera": None,
+                                 "e_t_m": None, "e_theta_rad": None, "status": r_m["status"]})
     return {"rows": rows}
 
 
@@ -266,16 +356,20 @@ def sweep_plot(sweep: dict, path: Path, reference_name: str):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = sweep["rows"]
+    rows = [r for r in sweep["rows"] if r.get("e_t_m") is not None]  # failed runs have no errors
     methods = sorted({r["method"] for r in rows}, key=METHODS.index)
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     for m in methods:
         ns = sorted({r["views"] for r in rows if r["method"] == m})
         for a, key, scale in ((ax[0], "e_t_m", 1e2), (ax[1], "e_theta_rad", 1.0)):
             vals = [[r[key] * scale for r in rows if r["method"] == m and r["views"] == n] for n in ns]
-            a.errorbar(ns, [np.mean(v) for v in vals], yerr=[np.std(v) for v in vals], marker="o", capsize=2,
+            # median and quartiles: a few failed-looking subsets must not hide the typical error
+            med = np.array([np.median(v) for v in vals])
+            lo, hi = (np.array([np.percentile(v, q) for v in vals]) for q in (25, 75))
+            a.errorbar(ns, med, yerr=[med - lo, hi - med], marker="o", capsize=2,
                        label=m, lw=2.5 if m == "calib3r-graph" else 1)
     ax[0].set_ylabel(f"e_t (cm) vs {reference_name}")
+    fig.suptitle("median and quartiles over random subsets rotating about two axes", fontsize=9)
     ax[1].set_ylabel(f"e_θ (rad) vs {reference_name}")
     for a in ax:
         a.set_xlabel("number of robot poses")

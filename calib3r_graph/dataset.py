@@ -165,12 +165,18 @@ def _interpret(root: Path, path: Path, meta: dict, skip_missing: bool) -> Datase
     base_T_ee = read_robot_poses(root / str(poses_name), unit)
     ds = Dataset(root, cameras, base_T_ee, pattern, unit, meta)
     _check_frames_have_poses(ds, skip_missing)
+    _check_image_sizes(ds)
     return ds
 
 
 def _validate_pattern(pattern, path):
     if not isinstance(pattern, dict):
         raise InputError(path, "must be a mapping with type, inner_corners and square_size", "pattern")
+    if pattern.get("type") in ("charuco", "circles", "asymmetric_circles"):  # see calib3r_graph/boards.py
+        from calib3r_graph.boards import from_pattern
+
+        from_pattern(pattern, path)
+        return
     if pattern.get("type") != "checkerboard":
         raise InputError(path, f"unsupported pattern type '{pattern.get('type')}'", "pattern.type")
     corners = pattern.get("inner_corners")
@@ -186,10 +192,12 @@ def read_robot_poses(path: Path, unit: str = "m", role: str = "named by dataset.
     if not path.is_file():
         raise InputError(path, f"missing ({role})")
     try:
-        text = path.read_text()
+        # utf-8-sig: files written by Windows tools start with a byte-order mark; CRLF line ends and
+        # spaces after the commas are accepted too
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise InputError(path, "not a text file") from None
-    rows = list(csv.reader(text.splitlines()))
+    rows = list(csv.reader(text.splitlines(), skipinitialspace=True))
     if not rows or [c.strip() for c in rows[0]] != ROBOT_COLUMNS:
         raise InputError(path, f"header must be '{','.join(ROBOT_COLUMNS)}'", "row 1")
     scale = UNIT_TO_METRES[unit]
@@ -243,6 +251,52 @@ def _check_frames_have_poses(ds: Dataset, skip_missing: bool):
                 log.warning("%s: frame %s has no robot pose; skipped", path, frame)
 
 
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of a PNG or JPEG from its header alone (no decoding, no image library)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+            if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+                return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+            if head[:2] == b"\xff\xd8":
+                fh.seek(2)
+                while True:
+                    marker = fh.read(2)
+                    if len(marker) < 2 or marker[0] != 0xFF:
+                        break
+                    while marker[1] == 0xFF:  # fill bytes
+                        marker = marker[1:] + fh.read(1)
+                    kind = marker[1]
+                    if kind in (0xD8, 0x01) or 0xD0 <= kind <= 0xD7:  # markers without a length
+                        continue
+                    length = int.from_bytes(fh.read(2), "big")
+                    if 0xC0 <= kind <= 0xCF and kind not in (0xC4, 0xC8, 0xCC):  # start of frame
+                        sof = fh.read(5)
+                        if len(sof) == 5:
+                            return int.from_bytes(sof[3:5], "big"), int.from_bytes(sof[1:3], "big")
+                        break
+                    if length < 2:
+                        break
+                    fh.seek(length - 2, 1)
+    except OSError as e:
+        raise InputError(path, f"cannot be read ({e.strerror or e})") from None
+    raise InputError(path, "not a readable PNG or JPEG image")
+
+
+def _check_image_sizes(ds: Dataset):
+    """Every image and depth map of the dataset's frames has its camera's size in dataset.yaml."""
+    for name, cam in ds.cameras.items():
+        for frame in ds.frames:
+            for kind, path in (("image", ds.image_path(name, frame)), ("depth map", ds.depth_path(name, frame))):
+                if path is None:
+                    continue
+                w, h = image_size(path)
+                if (w, h) != (cam.width, cam.height):
+                    raise InputError(path, f"{kind} is {w}x{h} pixels but dataset.yaml gives camera {name} "
+                                           f"{cam.width}x{cam.height} (width x height); resize it back or fix "
+                                           "the camera's width, height and intrinsics")
+
+
 def pose_to_row(frame: str, pose: gtsam.Pose3, scale: float = 1.0) -> list:
     q = pose.rotation().toQuaternion()
     t = pose.translation() * scale
@@ -278,6 +332,14 @@ def write_dataset_yaml(root: Path, cameras, unit="m", pattern=None, poses_name="
 
 def pose_from_dict(d) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Quaternion(d["qw"], d["qx"], d["qy"], d["qz"]), np.array([d["x"], d["y"], d["z"]]))
+
+
+def subset_dataset(ds, frames):
+    """The dataset restricted to the given frames (robot poses of other frames dropped)."""
+    import dataclasses
+
+    frames = set(frames)
+    return dataclasses.replace(ds, base_T_ee={f: p for f, p in ds.base_T_ee.items() if f in frames})
 
 
 def ee_T_cam_by_camera(cameras: dict) -> dict:

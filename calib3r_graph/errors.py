@@ -31,3 +31,70 @@ class SolveError(Calib3rError):
 
 class OutputError(Calib3rError):
     exit_code = 5
+
+
+# --- exceptions from the libraries (GTSAM, pycolmap, OpenCV) as one line ---------------------------
+
+LIBRARIES = {"gtsam": "GTSAM", "pycolmap": "pycolmap", "cv2": "OpenCV"}
+# what a GTSAM key's letter stands for (solve's graph and pattern-ba's)
+_SYMBOLS = {"x": "a view's pose", "s": "a view's depth scale", "c": "a view's depth correction",
+            "e": "a camera's ee_T_cam", "l": "a camera's metric scale", "v": "a view's pose",
+            "b": "the board's pose", "q": "the board's scale", "k": "a camera's intrinsics"}
+
+
+def _library_of(exc) -> str | None:
+    """Which library raised ``exc``: by its type's module, by the library's own Python frames in the
+    traceback, or by the library objects named on the line of our code that called into it."""
+    import linecache
+    import re
+
+    mod = type(exc).__module__.split(".")[0]
+    if mod in LIBRARIES:
+        return mod
+    tb, innermost = exc.__traceback__, None
+    while tb is not None:
+        fname = tb.tb_frame.f_code.co_filename.replace("\\", "/")
+        for lib in LIBRARIES:
+            if f"/{lib}/" in fname:
+                return lib
+        innermost = tb
+        tb = tb.tb_next
+    if innermost is None:
+        return None
+    frame = innermost.tb_frame
+    line = linecache.getline(frame.f_code.co_filename, innermost.tb_lineno)
+    for name in re.findall(r"[A-Za-z_]\w*", line):
+        value = frame.f_locals.get(name, frame.f_globals.get(name))
+        if value is None:
+            continue
+        owner = value.__name__ if type(value).__name__ == "module" else type(value).__module__
+        owner = (owner or "").split(".")[0]
+        if owner in LIBRARIES:
+            return owner
+    return None
+
+
+def library_error(exc) -> tuple[str, int] | None:
+    """``(one line, exit code)`` for an exception raised by GTSAM, pycolmap or OpenCV, else None.
+
+    The line names the library and the cause (OpenCV's error name and first detail, GTSAM's
+    under-constrained variable and what it is); the full text is left to ``--debug``."""
+    import re
+
+    lib = _library_of(exc)
+    if lib is None:
+        return None
+    text = str(exc)
+    lines = [line.strip(" >") for line in text.splitlines() if line.strip(" >")]
+    if lib == "gtsam" and "ndetermina" in text:
+        m = re.search(r"Symbol: (\w)(\d+)", text)
+        var = f" near variable {m.group(1)}{m.group(2)} ({_SYMBOLS.get(m.group(1), 'a variable')})" if m else ""
+        return (f"GTSAM: indeterminate linear system{var}: nothing fixes it well enough (too little overlap or "
+                "rotation in the data, or a zero or non-finite noise sigma)", SolveError.exit_code)
+    if lib == "cv2":
+        m = re.search(r"error: \(-?\d+:([^)]*)\)", text)
+        cause = m.group(1) if m else (lines[0] if lines else type(exc).__name__)
+        detail = next((line for line in lines[1:] if not line.startswith(("where", "'"))), "")
+        return f"OpenCV: {cause}" + (f" ({detail})" if detail else ""), 1
+    first = lines[0] if lines else type(exc).__name__
+    return f"{LIBRARIES[lib]}: {type(exc).__name__}: {first}", 1

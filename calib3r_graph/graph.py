@@ -128,6 +128,15 @@ def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise
             graph.add(factors.make_reprojection_factor(m, k3d))
 
 
+def robot_views(keys, views) -> list:
+    """The view of each frame that carries its robot pose factor: the first camera's (a rig's other
+    cameras are tied to it by rigidity)."""
+    by_frame = {}
+    for v in views:
+        by_frame.setdefault(split_view_id(v)[1], []).append(v)
+    return [min(vs, key=lambda v: keys.cameras.index(split_view_id(v)[0])) for vs in by_frame.values()]
+
+
 def add_robot_factors(graph, keys, views, base_T_ee, ee_T_cam_init, noise: NoiseOptions):
     """Robot pose factor on each frame's reference view; rigidity for the frame's other views."""
     by_frame = {}

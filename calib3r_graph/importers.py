@@ -2,11 +2,12 @@
 
 * ``rwhe`` (RWHE-Calib, Ali et al., Sensors 2019): images ``01.png``... or ``im_XX.bmp``,
   ``RobotPosesVec.txt`` (one row-major 4x4 per line), ``squaresize.txt`` (or the misspelt
-  ``sqauresize.txt``), board size from ``--board COLSxROWS`` (inner corners).
+  ``sqauresize.txt``), board from ``--board`` (``COLSxROWS`` inner corners, or any spec of
+  calib3r_graph.boards, e.g. ``charuco:COLSxROWS:SQUARE_M:MARKER_M``).
 * ``tabb`` (Tabb & Ahmad Yousef, MVA 2017): ``imageXX.png``, ``robot_cali.txt`` (count, then
   4x4 matrices), ``calibration_object.txt`` (board and tile size).
 
-Neither ships intrinsics: they are calibrated from the visible chessboard (OpenCV,
+Neither ships intrinsics: they are calibrated from the visible board (OpenCV,
 OPENCV model). Documentation about pose direction and units is not trusted: the robot
 motions are compared with the visual motions of the board (PnP) — AX = XB is solved for
 each convention (as given / inverted x metres / millimetres) and the one whose residual
@@ -24,6 +25,8 @@ import gtsam
 import numpy as np
 from tqdm import tqdm
 
+from calib3r_graph import boards
+from calib3r_graph.boards import Board
 from calib3r_graph.dataset import Camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.errors import InputError
 from calib3r_graph.output import staged_directory
@@ -36,7 +39,7 @@ IMAGE_SUFFIXES = (".png", ".bmp", ".jpg", ".jpeg")
 class RawRecording:
     images: list  # [(frame id, path)]
     matrices: list  # 4x4 as published, one per image
-    board: tuple  # inner corners (cols, rows)
+    board: Board  # its size from the recording's files unless the spec gave one
     square_m: float
     source: str
 
@@ -84,7 +87,9 @@ def read_rwhe(src: Path, board=None) -> RawRecording:
         raise InputError(src, f"{len(imgs)} images but {len(mats)} poses in RobotPosesVec.txt")
     if board is None:
         raise InputError("--board", "rwhe recordings need the board's inner corners, e.g. --board 28x17")
-    return RawRecording([(f"{_frame_number(p):04d}", p) for p in imgs], mats, board, _read_square(src), "rwhe")
+    board = as_board(board)
+    square = board.size if board.size else _read_square(src)
+    return RawRecording([(f"{_frame_number(p):04d}", p) for p in imgs], mats, as_board(board, square), square, "rwhe")
 
 
 def read_tabb(src: Path, board=None) -> RawRecording:
@@ -111,37 +116,79 @@ def read_tabb(src: Path, board=None) -> RawRecording:
         square = float(m.group(1)) / 1000 if m else square
         m = re.search(r"(\d+)\s*x\s*(\d+)", txt)
         cb = (int(m.group(1)), int(m.group(2))) if m else cb
-    return RawRecording([(f"{_frame_number(p):04d}", p) for p in imgs], mats, board or cb, square, "tabb")
+    return RawRecording([(f"{_frame_number(p):04d}", p) for p in imgs], mats, as_board(board or cb, square), square,
+                        "tabb")
 
 
-def detect_all(rec: RawRecording, progress=True):
-    """Chessboard corners per frame; tries the stated board, then the board one corner smaller
-    (recordings disagree on whether they count squares or inner corners)."""
+def as_board(board, square_m=None) -> Board:
+    """A Board from a spec string, a (cols, rows) of checkerboard inner corners, or a Board;
+    ``square_m`` fills in a size the spec did not give."""
+    if isinstance(board, str):
+        board = boards.parse_board(board)
+    elif not isinstance(board, Board):
+        board = Board("checkerboard", int(board[0]), int(board[1]), None)
+    return board if board.size or square_m is None else Board(board.kind, board.cols, board.rows, float(square_m),
+                                                               board.marker, board.dictionary)
+
+
+def read_gray(path: Path):
+    gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if gray is None:
+        raise InputError(path, "unreadable image")
+    return gray
+
+
+def detect_all(images, board: Board, progress=True):
+    """``({frame: (uv, ids)}, board used, (width, height))`` of the board in ``[(frame, path)]``.
+
+    A checkerboard is tried as stated, then one corner smaller (recordings disagree on whether
+    they count squares or inner corners); a ChArUco board without a dictionary gets the one
+    its markers are found under."""
+    if isinstance(images, RawRecording):
+        images, board = images.images, images.board
     found, size = {}, None
-    for cols, rows in (rec.board, (rec.board[0] - 1, rec.board[1] - 1)):
-        for frame, path in tqdm(rec.images, desc=f"chessboard {cols}x{rows}", disable=None if progress else True, leave=False):
-            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if gray is None:
-                raise InputError(path, "unreadable image")
+    candidates = [board]
+    if board.kind == "checkerboard":
+        candidates.append(Board(board.kind, board.cols - 1, board.rows - 1, board.size))
+    for cand in candidates:
+        if cand.kind == "charuco":
+            cand = boards.resolve_dictionary(cand, [read_gray(p) for _, p in images[:10]])
+        for frame, path in tqdm(images, desc=cand.describe(), disable=None if progress else True, leave=False):
+            gray = read_gray(path)
             size = gray.shape[::-1]
-            ok, c = cv2.findChessboardCornersSB(gray, (cols, rows), flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-            if ok:
-                found[frame] = c.reshape(-1, 2)
+            hit = boards.detect(gray, cand)
+            if hit is not None:
+                found[frame] = hit
         if len(found) >= 3:
-            return found, (cols, rows), size
+            return found, cand, size
         found = {}
-    raise InputError(rec.images[0][1].parent, f"the {rec.board[0]}x{rec.board[1]} chessboard is found in fewer "
-                                               "than 3 images (wrong --board?)")
+    what = (f"the {board.cols}x{board.rows} chessboard" if board.kind == "checkerboard" else f"the {board.describe()}")
+    raise InputError(images[0][1].parent, f"{what} is found in fewer than 3 images (wrong --board?)")
 
 
-def calibrate_intrinsics(corners: dict, board, square, size):
-    obj = np.c_[np.mgrid[0:board[0], 0:board[1]].T.reshape(-1, 2) * square, np.zeros(board[0] * board[1])]
-    objs = [obj.astype(np.float32)] * len(corners)
-    imgs = [c.astype(np.float32) for c in corners.values()]
+def _object_points(board: Board, ids):
+    pts = boards.points(board)
+    return (pts if ids is None else pts[ids]).astype(np.float32)
+
+
+def calibrate_intrinsics(detections: dict, board: Board, size):
+    """K, OPENCV distortion [k1, k2, p1, p2], RMS (px) and {frame: cam_T_board} from the board alone."""
+    objs = [_object_points(board, ids) for _, ids in detections.values()]
+    imgs = [uv.astype(np.float32) for uv, _ in detections.values()]
     flags = cv2.CALIB_FIX_K3
     rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(objs, imgs, size, None, None, flags=flags)
-    poses = {f: gtsam.Pose3(gtsam.Rot3(cv2.Rodrigues(r)[0]), t.ravel()) for f, r, t in zip(corners, rvecs, tvecs)}
+    poses = {f: gtsam.Pose3(gtsam.Rot3(cv2.Rodrigues(r)[0]), t.ravel()) for f, r, t in zip(detections, rvecs, tvecs)}
     return K, dist.ravel()[:4], rms, poses
+
+
+def board_poses(detections: dict, board: Board, K, dist) -> dict:
+    """{frame: cam_T_board} by PnP with known intrinsics."""
+    out = {}
+    for f, (uv, ids) in detections.items():
+        ok, rvec, tvec = cv2.solvePnP(_object_points(board, ids).astype(np.float64), uv, K, np.asarray(dist, float))
+        if ok:
+            out[f] = gtsam.Pose3(gtsam.Rot3(cv2.Rodrigues(rvec)[0]), tvec.ravel())
+    return out
 
 
 def apply_convention(M, unit: str, direction: str) -> gtsam.Pose3:
@@ -181,7 +228,7 @@ def choose_convention(mats: dict, cam_T_board: dict):
     return best, results[best][2], {f"{d}, {u}": (r[0], r[1]) for (u, d), r in results.items()}
 
 
-def refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern):
+def refine_intrinsics_with_robot(K, dist, size, detections, cam_T_board, base_T_ee, pattern):
     """K and distortion from a joint adjustment with the robot poses (pattern-ba with intrinsics).
 
     A board that is small and far in the image leaves focal length and board distance
@@ -192,26 +239,26 @@ def refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee,
     from calib3r_graph.pattern import Detection, opencv_hand_eye, pattern_ba
 
     cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist))
-    ds = Dataset(Path("."), {"cam0": cam}, {f: base_T_ee[f] for f in corners}, pattern)
-    dets = [Detection(f, c.astype(np.float64), cam_T_board[f], 0.0) for f, c in corners.items()]
+    ds = Dataset(Path("."), {"cam0": cam}, {f: base_T_ee[f] for f in detections}, pattern)
+    dets = [Detection(f, uv.astype(np.float64), cam_T_board[f], 0.0, ids) for f, (uv, ids) in detections.items()]
     X0 = opencv_hand_eye(ds, dets, "park")
     fx, fy, cx, cy, *refined_dist = pattern_ba(ds, {"cam0": dets}, NoiseOptions(), {"cam0": X0}).intrinsics["cam0"]
     return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), np.array(refined_dist)
 
 
 def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
+    """``board``: a spec string, (cols, rows) inner corners, a Board or None (tabb reads its file)."""
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
         raise InputError(src, "no such directory")
     rec = read_rwhe(src, board) if fmt == "rwhe" else read_tabb(src, board)
-    corners, board_used, size = detect_all(rec, progress)
-    K, dist, rms, cam_T_board = calibrate_intrinsics(corners, board_used, rec.square_m, size)
+    corners, board_used, size = detect_all(rec.images, rec.board, progress)
+    K, dist, rms, cam_T_board = calibrate_intrinsics(corners, board_used, size)
     mats = {f: m for (f, _), m in zip(rec.images, rec.matrices)}
     (unit, direction), _, residuals = choose_convention(mats, cam_T_board)
     # The chosen convention for every frame (also those where the board was not found).
     base_T_ee = {f: apply_convention(M, unit, direction) for f, M in mats.items()}
-    pattern = {"type": "checkerboard", "inner_corners": [int(board_used[0]), int(board_used[1])],
-               "square_size": float(rec.square_m)}
+    pattern = boards.to_pattern(board_used)
     K_board = K.copy()
     K, dist = refine_intrinsics_with_robot(K, dist, size, corners, cam_T_board, base_T_ee, pattern)
     cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), tuple(float(x) for x in
@@ -229,13 +276,18 @@ def import_recording(fmt: str, src, dst, board=None, progress=True) -> str:
                                              "intrinsics_rms_px": float(rms),
                                              "board_found_in": len(corners)}})
     lines = [f"imported {len(rec.images)} frames of {src} ({fmt}) into {dst}",
-             f"  intrinsics from the {board_used[0]}x{board_used[1]} chessboard in {len(corners)} images: "
+             f"  intrinsics from the {board_used.describe()} in {len(corners)} images: "
              f"fx {K_board[0, 0]:.1f} fy {K_board[1, 1]:.1f} cx {K_board[0, 2]:.1f} cy {K_board[1, 2]:.1f}, "
              f"RMS {rms:.3f} px",
              f"  refined with the robot's metric motion (pattern-ba): fx {K[0, 0]:.1f} fy {K[1, 1]:.1f} "
              f"cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}",
-             f"  robot poses: using '{direction}, {unit}' (AX=XB residual against the board's visual motion, "
-             "rotation deg / translation mm):"]
-    lines += [f"    {'*' if k == f'{direction}, {unit}' else ' '} {k:42s} {r:8.3f} deg {t:10.2f} mm"
-              for k, (r, t) in residuals.items()]
+             *convention_lines(direction, unit, residuals)]
     return "\n".join(lines)
+
+
+def convention_lines(direction: str, unit: str, residuals: dict) -> list:
+    """The report of choose_convention: the one used, and the residuals of all four."""
+    lines = [f"  robot poses: using '{direction}, {unit}' (AX=XB residual against the board's visual motion, "
+             "rotation deg / translation mm):"]
+    return lines + [f"    {'*' if k == f'{direction}, {unit}' else ' '} {k:42s} {r:8.3f} deg {t:10.2f} mm"
+                    for k, (r, t) in residuals.items()]

@@ -19,6 +19,9 @@ from factors.pattern import PatternMeasurement, make_pattern_factor
 
 log = logging.getLogger(__name__)
 
+# A printed board's scale error, 1 sigma: prints are routinely 0.1-0.5 % off their nominal size.
+BOARD_SCALE_TOLERANCE = 0.003
+
 OPENCV_METHODS = {"tsai": cv2.CALIB_HAND_EYE_TSAI, "park": cv2.CALIB_HAND_EYE_PARK,
                   "horaud": cv2.CALIB_HAND_EYE_HORAUD, "andreff": cv2.CALIB_HAND_EYE_ANDREFF,
                   "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS}
@@ -30,40 +33,45 @@ class Detection:
     uv: np.ndarray  # (N, 2) corners as detected (distorted pixels)
     cam_T_board: gtsam.Pose3  # from PnP
     reprojection_px: float
+    ids: np.ndarray | None = None  # indices of uv into board_points (None: all of them, in order)
 
 
 def board_points(pattern) -> np.ndarray:
-    cols, rows = pattern["inner_corners"]
-    g = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * pattern["square_size"]
-    return np.c_[g, np.zeros(len(g))]
+    """(N, 3) points of the dataset's board (any kind in calib3r_graph.boards), metres."""
+    from calib3r_graph import boards
+
+    return boards.points(boards.from_pattern(pattern))
 
 
 def detect(ds, camera: str, frames=None) -> list:
-    """Chessboard corners and PnP pose in every image of a camera where the whole board is found."""
+    """Board points and PnP pose in every image of a camera where the board is found (a
+    checkerboard or circle grid whole, a ChArUco board in part: see Detection.ids)."""
+    from calib3r_graph import boards
+
     if not ds.pattern:
         raise SolveError("no pattern in dataset.yaml")
     cam = ds.cameras[camera]
-    cols, rows = ds.pattern["inner_corners"]
-    obj = board_points(ds.pattern)
+    board = boards.from_pattern(ds.pattern, ds.root / "dataset.yaml")
+    obj_all = boards.points(board)
+    images = [(f, p) for f in frames or ds.frames if (p := ds.image_path(camera, f)) is not None]
+    if board.kind == "charuco" and not board.dictionary and images:  # found from the first images
+        grays = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for _, p in images[:10]]
+        board = boards.resolve_dictionary(board, [g for g in grays if g is not None])
     out = []
-    for f in frames or ds.frames:
-        path = ds.image_path(camera, f)
-        if path is None:
-            continue
+    for f, path in images:
         gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
+        found = None if gray is None else boards.detect(gray, board)
+        if found is None:
             continue
-        ok, corners = cv2.findChessboardCornersSB(gray, (cols, rows), flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
-        if not ok:
-            continue
-        uv = corners.reshape(-1, 2).astype(np.float64)
+        uv, ids = found
+        obj = obj_all if ids is None else obj_all[ids]
         ok, rvec, tvec = cv2.solvePnP(obj, uv, cam.K, cam.dist, flags=cv2.SOLVEPNP_ITERATIVE)
         if not ok:
             continue
         proj, _ = cv2.projectPoints(obj, rvec, tvec, cam.K, cam.dist)
         err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - uv) ** 2, 1))))
         R, _ = cv2.Rodrigues(rvec)
-        out.append(Detection(f, uv, gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()), err))
+        out.append(Detection(f, uv, gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()), err, ids))
     return out
 
 
@@ -90,14 +98,20 @@ def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
 class PatternBAResult:
     ee_T_cam: dict  # camera -> Pose3
     intrinsics: dict  # camera -> [fx, fy, cx, cy, k1, k2, p1, p2]
-    covariance: dict  # camera -> 6x6 marginal of ee_T_cam (GTSAM tangent), empty if unobservable
+    covariance: dict  # camera -> 6x6 of ee_T_cam (GTSAM tangent): model + systematic + board scale; {} if unobservable
     corner_sigma_px: float = 0.5  # calibrated corner noise
     robot_noise_factor: float = 1.0  # robot sigma used / nominal
     board_scale: float = 1.0  # estimated square size / nominal
+    board_scale_sigma: float = 0.0  # its marginal sigma (0 when held fixed)
+    chi2: dict = None  # {"corners": chi2, "robot": chi2} of the final solve, with the noise it used
+    covariance_model: dict = None  # camera -> 6x6 marginal of the noise model alone (covariance adds the rest)
+    board_scale_estimate: dict = None  # the robot's measurement of the scale and how it was combined
+    systematic: dict = None  # camera -> the kinematic error field's summary (systematic.py)
 
 
 def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100,
-               refine_intrinsics=True, noise_rounds=4, estimate_board_scale=True) -> "PatternBAResult":
+               refine_intrinsics=True, noise_rounds=4, estimate_board_scale=True,
+               board_scale_tolerance=BOARD_SCALE_TOLERANCE) -> "PatternBAResult":
     """Joint adjustment over every camera that saw the board.
 
     With ``refine_intrinsics`` each camera's whole OPENCV model (fx, fy, cx, cy, k1, k2, p1,
@@ -109,9 +123,17 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     coefficients is a different lens.
 
     With ``estimate_board_scale`` the board's scale is a variable too (one factor on the
-    nominal square size, 2 % prior): a printed board is routinely 0.1-0.5 % off, which biases a
-    pattern hand-eye along the optical axis by that fraction of the board distance, and the
-    robot's metric motion measures it.
+    nominal square size): a printed board is routinely 0.1-0.5 % off, which biases a pattern
+    hand-eye along the optical axis by that fraction of the board distance, and the robot's
+    metric motion can measure it. How well depends on the motion: when the camera orbits the
+    board, a scale change and a shift of ee_T_cam along the optical axis are nearly the same
+    thing, and a systematic robot error of a fraction of a millimetre moves the estimate by
+    percent. So the robot's measurement ``s_data`` is taken with its statistical sigma and the
+    systematic sigma of the kinematic error field (systematic.py) and combined with the
+    nominal size, whose sigma is ``board_scale_tolerance`` (a print's typical error):
+    ``s = 1 + w (s_data - 1)``, ``w = tol^2 / (tol^2 + sigma_data^2)``. The final solve holds the
+    scale there, and its remaining sigma is added to the covariance along the direction in
+    which the scale moves ee_T_cam (the regression of ee_T_cam on the scale).
 
     The two noise groups are calibrated from their own residuals (variance component
     estimation), because their relative weight decides the result: each round rescales the
@@ -138,11 +160,11 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     for i, (j, c, d) in enumerate(views):
         values.insert(gtsam.symbol("v", i), ds.base_T_ee[d.frame].compose(init_ee_T_cam[c]))
 
-    def build(px, robot_scale):
+    def build(px, robot_scale, scale_prior=(1.0, 0.02)):
         graph = gtsam.NonlinearFactorGraph()
         board, robot = [], []
         if estimate_board_scale:
-            graph.add(gtsam.PriorFactorDouble(k_scale, 1.0, gtsam.noiseModel.Isotropic.Sigma(1, 0.02)))
+            graph.add(gtsam.PriorFactorDouble(k_scale, scale_prior[0], gtsam.noiseModel.Isotropic.Sigma(1, scale_prior[1])))
         if refine_intrinsics:  # weak prior at the given intrinsics
             for j, c in enumerate(cams):
                 cam = ds.cameras[c]
@@ -154,7 +176,8 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
             k_cam = gtsam.symbol("v", i)
             keys = [k_board, k_cam] + ([gtsam.symbol("k", j)] if refine_intrinsics else []) + \
                 ([k_scale] if estimate_board_scale else [])
-            board.append(make_pattern_factor(PatternMeasurement(obj, d.uv, camera_intrinsics(ds.cameras[c]), px,
+            pts = obj if d.ids is None else obj[d.ids]  # a ChArUco detection holds some of the corners
+            board.append(make_pattern_factor(PatternMeasurement(pts, d.uv, camera_intrinsics(ds.cameras[c]), px,
                                                                 estimate_board_scale),
                                              keys))
             cov = robot_pose_noise_covariance(init_ee_T_cam[c], np.radians(noise.robot_sigma_deg),
@@ -183,21 +206,61 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         new_px, new_robot = px * np.sqrt(board_factor), max(1.0, robot_scale * robot_factor)
         settled = abs(new_px / px - 1) < 0.05 and abs(new_robot / robot_scale - 1) < 0.05
         px, robot_scale = new_px, new_robot
+
+    def systematic(graph, values, with_scale):
+        from calib3r_graph.systematic import systematic_errors
+
+        robot = [(gtsam.symbol("e", j), gtsam.symbol("v", i), ds.base_T_ee[d.frame]) for i, (j, _, d) in enumerate(views)]
+        return systematic_errors(graph, values, robot, {c: (gtsam.symbol("e", j), k_scale if with_scale else None)
+                                                        for j, c in enumerate(cams)})
+
+    scale_info, scale_term = {}, {}
+    if estimate_board_scale:
+        try:  # the robot's measurement of the scale, and how ee_T_cam moves with it
+            marginals = gtsam.Marginals(graph, values)
+            sigma_stat = float(np.sqrt(marginals.marginalCovariance(k_scale)[0, 0]))
+            slope = {}
+            for j, c in enumerate(cams):
+                J = marginals.jointMarginalCovariance(gtsam.KeyVector([gtsam.symbol("e", j), k_scale])).fullMatrix()
+                slope[c] = J[:6, 6] / J[6, 6]  # d xi / d s
+        except RuntimeError:
+            sigma_stat, slope = float("inf"), {}
+        s_data = values.atDouble(k_scale)
+        sigma_sys = float(np.sqrt(np.mean([e.scale_sigma_rel ** 2 for e in systematic(graph, values, True).values()])))
+        sigma_data = float(np.hypot(sigma_stat, sigma_sys))
+        w = board_scale_tolerance ** 2 / (board_scale_tolerance ** 2 + sigma_data ** 2)
+        s_post = 1.0 + w * (s_data - 1.0)
+        sigma_post = float(np.sqrt(1.0 / (1.0 / board_scale_tolerance ** 2 + 1.0 / sigma_data ** 2)))
+        scale_info = {"measured": s_data, "measured_sigma_statistical": sigma_stat,
+                      "measured_sigma_systematic": sigma_sys, "nominal_tolerance": board_scale_tolerance,
+                      "weight_of_measurement": w, "used": s_post, "used_sigma": sigma_post}
+        log.info("pattern-ba: the robot measures the board scale %.5f ± %.5f (statistical %.5f, systematic %.5f); "
+                 "with the nominal size (± %.4f): %.5f ± %.5f", s_data, sigma_data, sigma_stat, sigma_sys,
+                 board_scale_tolerance, s_post, sigma_post)
+        graph, board, robot = build(px, robot_scale, (s_post, 1e-7))
+        values = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        scale_term = {c: sigma_post ** 2 * np.outer(g, g) for c, g in slope.items()}
     board_scale = values.atDouble(k_scale) if estimate_board_scale else 1.0
+    chi2 = {"corners": 2 * sum(f.error(values) for f in board), "robot": 2 * sum(f.error(values) for f in robot)}
     log.info("pattern-ba: corner noise %.3f px, robot poses %.1fx their nominal sigma, board scale %.5f (square "
-             "%.3f mm)", px, np.sqrt(robot_scale), board_scale, 1e3 * board_scale * ds.pattern["square_size"])
+             "%.3f mm)", px, np.sqrt(robot_scale), board_scale,
+             1e3 * board_scale * ds.pattern.get("square_size", ds.pattern.get("spacing", np.nan)))
     intrinsics = {c: values.atVector(gtsam.symbol("k", j)) for j, c in enumerate(cams)}
+    board_scale_sigma = scale_info.get("used_sigma", 0.0)
     try:
         marginals = gtsam.Marginals(graph, values)
-        covariance = {c: marginals.marginalCovariance(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
+        covariance_model = {c: marginals.marginalCovariance(gtsam.symbol("e", j)) for j, c in enumerate(cams)}
         intrinsics_sigma = {c: np.sqrt(np.diag(marginals.marginalCovariance(gtsam.symbol("k", j))))
                             for j, c in enumerate(cams)} if refine_intrinsics else {}
     except RuntimeError:  # an unobservable direction: report no covariance rather than fail
-        covariance, intrinsics_sigma = {}, {}
+        covariance_model, intrinsics_sigma = {}, {}
+    sys_err = systematic(graph, values, False) if covariance_model else {}
+    covariance = {c: C + sys_err[c].covariance + scale_term.get(c, 0.0) for c, C in covariance_model.items()}
     for c, k in intrinsics.items():
         if refine_intrinsics:
             sig = intrinsics_sigma.get(c, np.full(8, np.nan))
             log.info("pattern-ba: %s intrinsics fx %.1f±%.1f fy %.1f±%.1f cx %.1f±%.1f cy %.1f±%.1f, k1 %.4f±%.4f "
                      "k2 %.4f±%.4f p1 %.5f±%.5f p2 %.5f±%.5f", c, *np.ravel(np.column_stack([k, sig])))
     return PatternBAResult({c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}, intrinsics,
-                           covariance, px, float(np.sqrt(robot_scale)), board_scale)
+                           covariance, px, float(np.sqrt(robot_scale)), board_scale, board_scale_sigma, chi2,
+                           covariance_model, scale_info, {c: e.to_json() for c, e in sys_err.items()})

@@ -58,7 +58,9 @@ def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) ->
     keys, cameras = sol.keys, list(sol.ee_T_cam)
     ref_cam = cameras[0]
     X = sol.ee_T_cam[ref_cam]
-    before = [np.asarray(sol.covariance[c]) for c in cameras]
+    # The same graph's marginals before and after: the noise model's covariance (the systematic
+    # part does not shrink with one more pose of the same arm).
+    before = [np.asarray(sol.covariance_model.get(c, sol.covariance[c])) for c in cameras]
     logdet_before = sum(np.linalg.slogdet(c)[1] for c in before)
     ref_views = [v for v in sol.base_T_cam if split_view_id(v)[0] == ref_cam]
     rng = np.random.default_rng(0)

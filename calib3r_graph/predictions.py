@@ -1,6 +1,7 @@
 """Reading and writing ``predictions/<name>/``: per-view canonical depth + confidence and
 the co-visibility graph's pairwise matches (see the dataset format in the README)."""
 
+import csv
 import json
 import logging
 import zipfile
@@ -176,6 +177,32 @@ def save_predictions(root, name: str, views: dict, pairs: list, info: dict):
         atomic_write_json(stage / "info.json", info)
 
 
+def subset_predictions(preds: Predictions, frames) -> Predictions:
+    """The predictions restricted to the views of the given frames, and the pairs among them."""
+    frames = set(frames)
+    views = {v: p for v, p in preds.views.items() if split_view_id(v)[1] in frames}
+    pairs = [p for p in preds.pairs if p.view_a in views and p.view_b in views]
+    return Predictions(preds.name, preds.info, views, pairs)
+
+
+def read_poses_csv(path: Path) -> dict:
+    """A frontend's visual poses, ``predictions/<name>/poses.csv`` -> {view: world_T_cam 4x4
+    (frontend units)}. Written by the colmap frontend."""
+    if not path.is_file():
+        raise InputError(path, "missing: --init colmap needs predictions made by the colmap frontend")
+    out = {}
+    i = 1
+    try:
+        rows = list(csv.reader(path.read_text().splitlines()))
+        for i, row in enumerate(rows[1:], start=2):
+            T = np.eye(4)
+            T[:3] = np.array([float(x) for x in row[1:13]]).reshape(3, 4)
+            out[row[0]] = T
+    except (ValueError, IndexError) as e:
+        raise InputError(path, f"row {i}: not a pose ({e})") from None
+    return out
+
+
 def available_predictions(root) -> list:
     pdir = Path(root) / "predictions"
     return sorted(p.name for p in pdir.iterdir() if p.is_dir() and not p.name.startswith(".")) if pdir.is_dir() else []
@@ -193,10 +220,10 @@ def choose_predictions(ds, name: str | None) -> str:
         return name
     if not have:
         raise SolveError(f"{ds.root}: no predictions/ to solve from; make some with "
-                         "'calib3r-graph predict DATASET --frontend rgbd|colmap'")
+                         "'calib3r-graph predict DATASET --frontend rgbd|pairwise|colmap'")
     if len(have) == 1:
         return have[0]
-    for preferred in ("sim", "rgbd", "colmap"):
+    for preferred in ("sim", "rgbd", "pairwise", "colmap"):
         if preferred in have:
             return preferred
     raise SolveError(f"{ds.root}: several predictions ({', '.join(have)}); choose one with --predictions")

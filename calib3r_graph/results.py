@@ -4,11 +4,10 @@ reconstruction.ply and summary.txt, all staged and moved into place only on succ
 import csv
 import io
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
-import open3d as o3d
 
 from calib3r_graph.dataset import Dataset, pose_to_row
 from calib3r_graph.output import atomic_path, atomic_write_json, atomic_write_text, staged_directory
@@ -45,9 +44,14 @@ def calibration_json(sol, predictions_name: str) -> dict:
         cams[c] = {"T_ee_cam": X.matrix().tolist(), "covariance": np.asarray(sol.covariance[c]).tolist(),
                    "metric_scale": lam, "metric_scale_sigma": lam_sigma,
                    **uncertainty_report(X, sol.covariance[c])}
+        if c in sol.covariance_model:  # the noise model's marginal alone, beside the total
+            cams[c]["covariance_model"] = np.asarray(sol.covariance_model[c]).tolist()
+            cams[c]["sigma_ee_frame_model"] = uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
     return {"format": "calib3r-calibration/1", "cameras": cams,
             "covariance_convention": "tangent of ee_T_cam, right perturbation T = T_hat Exp([w; v]), "
-                                     "order [wx, wy, wz, vx, vy, vz] (rad, m); sigma_ee_frame rotated into the ee frame",
+                                     "order [wx, wy, wz, vx, vy, vz] (rad, m); sigma_ee_frame rotated into the ee frame; "
+                                     "covariance = covariance_model (noise model) + the systematic part "
+                                     "(solver.systematic: kinematic error field measured from the robot residuals)",
             "metric_scale_meaning": "metres per unit of the frontend's depth (geometric mean over the camera's views)",
             "predictions": predictions_name, "views_dropped": sol.views_dropped,
             "observability": sol.diagnostics, "solver": sol.stats}
@@ -63,8 +67,62 @@ def trajectory_csv(sol) -> str:
     return buf.getvalue()
 
 
-def point_cloud(ds: Dataset, preds: Predictions, sol, max_points_per_view=60000, voxel_m=0.002):
+@dataclass
+class PointCloud:
+    """A coloured point cloud: ``points`` (N, 3) in metres, ``colors`` (N, 3) RGB in [0, 1]."""
+
+    points: np.ndarray
+    colors: np.ndarray
+
+    def __len__(self):
+        return len(self.points)
+
+
+def metric_depth(vp, depth_scale: float, correction, uv) -> np.ndarray:
+    """A view's corrected metric depth at grid pixels ``uv`` (N, 2): ``s (1 + phi(u) c) d(u)``, as the
+    solver models it (factors/match3d.py)."""
+    h, w = vp.depth.shape
+    iu = np.clip(np.round(uv[:, 0]).astype(int), 0, w - 1)
+    iv = np.clip(np.round(uv[:, 1]).astype(int), 0, h - 1)
+    return vp.depth[iv, iu] * depth_scale * (1 + depth_correction_basis(np.asarray(uv, float), w, h)
+                                             @ np.asarray(correction))
+
+
+def voxel_down_sample(points: np.ndarray, colors: np.ndarray, voxel: float):
+    """One point per occupied voxel: the mean of its points and of their colours (as Open3D does)."""
+    if len(points) == 0:
+        return points, colors
+    cell = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    mean = lambda x: np.stack([np.bincount(inverse, weights=x[:, k], minlength=len(counts)) for k in range(3)],
+                              1) / counts[:, None]
+    return mean(points), mean(colors)
+
+
+def write_ply(path, points: np.ndarray, colors: np.ndarray):
+    """Binary little-endian PLY: float32 x, y, z and uchar red, green, blue per vertex."""
+    vertex = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                          ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    for k, name in enumerate("xyz"):
+        vertex[name] = points[:, k]
+    rgb = np.clip(np.round(np.asarray(colors) * 255), 0, 255).astype(np.uint8)
+    for k, name in enumerate(("red", "green", "blue")):
+        vertex[name] = rgb[:, k]
+    header = ("ply\nformat binary_little_endian 1.0\ncomment calib3r-graph reconstruction, robot base frame, "
+              f"metres\nelement vertex {len(vertex)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(vertex.tobytes())
+
+
+def point_cloud(ds: Dataset, preds: Predictions, sol, max_points_per_view=60000, voxel_m=0.002) -> PointCloud:
     """Dense metric cloud in the robot base frame, coloured from the images where present."""
+    import cv2
+
     pts_all, col_all = [], []
     for v, T in sol.base_T_cam.items():
         vp = preds.views[v]
@@ -74,7 +132,7 @@ def point_cloud(ds: Dataset, preds: Predictions, sol, max_points_per_view=60000,
         if len(idx) > max_points_per_view:
             idx = idx[:: len(idx) // max_points_per_view + 1]
         uv = np.stack([idx % w, idx // w], 1).astype(np.float64)
-        d = vp.depth.ravel()[idx] * sol.depth_scale[v] * (1 + depth_correction_basis(uv, w, h) @ sol.depth_correction[v])
+        d = metric_depth(vp, sol.depth_scale[v], sol.depth_correction[v], uv)
         rays = np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(vp.K).T
         P = (rays * d[:, None]) @ T.rotation().matrix().T + T.translation()
         cam, frame = split_view_id(v)
@@ -84,15 +142,17 @@ def point_cloud(ds: Dataset, preds: Predictions, sol, max_points_per_view=60000,
             img = cv2.imread(str(img_path), cv2.IMREAD_COLOR)
             if img is not None:
                 camera = ds.cameras[cam]
-                px, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), camera.K, camera.dist)
+                if np.any(camera.dist):
+                    px, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), camera.K, camera.dist)
+                else:  # a pinhole: rays are [x, y, 1]
+                    px = rays[:, :2] * np.diag(camera.K)[:2] + camera.K[:2, 2]
                 px = np.round(px.reshape(-1, 2)).astype(int)
                 ok = (px[:, 0] >= 0) & (px[:, 0] < img.shape[1]) & (px[:, 1] >= 0) & (px[:, 1] < img.shape[0])
                 colours[ok] = img[px[ok, 1], px[ok, 0], ::-1] / 255.0
         pts_all.append(P)
         col_all.append(colours)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(pts_all)))
-    pcd.colors = o3d.utility.Vector3dVector(np.concatenate(col_all))
-    return pcd.voxel_down_sample(voxel_m)
+    points, colors = voxel_down_sample(np.concatenate(pts_all), np.concatenate(col_all), voxel_m)
+    return PointCloud(points, colors)
 
 
 def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
@@ -108,6 +168,13 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
                   f"        sigma t = [{rep['x_mm']:.2f} {rep['y_mm']:.2f} {rep['z_mm']:.2f}] mm   "
                   f"sigma r = [{rep['rx_deg']:.3f} {rep['ry_deg']:.3f} {rep['rz_deg']:.3f}] deg   "
                   f"metric scale {lam:.5g} ± {lam_sigma:.2g} m/unit"]
+        if c in sol.covariance_model:
+            mod = uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
+            sysm = sol.systematic[c]
+            lines.append(f"        of which noise model t = [{mod['x_mm']:.2f} {mod['y_mm']:.2f} {mod['z_mm']:.2f}] mm; "
+                         f"systematic: robot error field {sysm.gradient_mm_per_m:.2f} mm/m, "
+                         f"{sysm.gradient_deg_per_m:.3f} deg/m across the workspace (and per degree of "
+                         f"orientation, solver.systematic)")
     for c, X in sol.ee_T_cam.items():
         corr = uncertainty_report(X, sol.covariance[c])["strongest_correlations"][0]
         lines.append(f"  {c}: strongest correlation {corr['axes'][0]}-{corr['axes'][1]} {corr['rho']:+.2f}")
@@ -123,19 +190,66 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_results(out_dir, ds: Dataset, preds: Predictions, sol, write_cloud=True) -> str:
+def write_results(out_dir, ds: Dataset, preds: Predictions, sol, write_cloud=True, extra=None) -> str:
+    """``extra(stage, calibration, summary, cloud)``: writes more files into the same staging folder,
+    e.g. report.html (calib3r_graph.report.solve_report_writer); ``cloud`` is None without write_cloud."""
     out_dir = Path(out_dir)
     summary = summary_text(sol, ds, preds.name)
     with staged_directory(out_dir) as stage:
-        atomic_write_json(stage / "calibration.json", calibration_json(sol, preds.name))
+        calibration = calibration_json(sol, preds.name)
+        atomic_write_json(stage / "calibration.json", calibration)
         atomic_write_text(stage / "trajectory.csv", trajectory_csv(sol))
+        write_views(stage / "views.npz", sol)
         atomic_write_text(stage / "summary.txt", summary)
+        pcd = None
         if write_cloud:
             pcd = point_cloud(ds, preds, sol)
             with atomic_path(stage / "reconstruction.ply") as tmp:
-                if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
-                    raise OSError(f"cannot write {tmp}")
+                write_ply(tmp, pcd.points, pcd.colors)
+        if extra is not None:
+            extra(stage, calibration, summary, pcd)
     return summary
+
+
+def write_views(path, sol):
+    """``views.npz``: each view's solved state, for ``evaluate`` to rebuild the reconstruction: ``view``
+    ids, ``base_T_cam`` (N, 4, 4), ``depth_scale`` (N,) metres per frontend unit and ``depth_correction``
+    (N, K) coefficients of ``1 + phi(u) c`` (factors/match3d.py)."""
+    from calib3r_graph.output import atomic_savez
+
+    views = sorted(sol.base_T_cam)
+    atomic_savez(path, view=np.array(views), base_T_cam=np.array([sol.base_T_cam[v].matrix() for v in views]),
+                 depth_scale=np.array([sol.depth_scale[v] for v in views], dtype=float),
+                 depth_correction=np.array([np.asarray(sol.depth_correction[v], float) for v in views]))
+
+
+@dataclass
+class ViewStates:
+    """The per-view part of a Solution (what ``views.npz`` holds)."""
+
+    base_T_cam: dict  # view -> gtsam.Pose3
+    depth_scale: dict  # view -> float
+    depth_correction: dict  # view -> (K,)
+
+
+def read_views(path) -> ViewStates:
+    import gtsam
+
+    from calib3r_graph.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "missing (written by 'calib3r-graph solve'; solve again to get it)")
+    try:
+        with np.load(path) as z:
+            views = [str(v) for v in z["view"]]
+            T, s, c = z["base_T_cam"], z["depth_scale"], z["depth_correction"]
+            return ViewStates({v: gtsam.Pose3(np.asarray(T[i], float)) for i, v in enumerate(views)},
+                              {v: float(s[i]) for i, v in enumerate(views)},
+                              {v: np.asarray(c[i], float) for i, v in enumerate(views)})
+    except Exception as e:  # noqa: BLE001 - any corruption of the file is the file's fault
+        first = next(iter(str(e).strip().splitlines()), "")
+        raise InputError(path, f"not a views.npz written by solve ({type(e).__name__}: {first})") from None
 
 
 def read_calibration(path) -> dict:

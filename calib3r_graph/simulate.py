@@ -256,8 +256,8 @@ def simulate(out_dir, opt: SimOptions, progress: bool = True) -> Path:
     if not 1 <= opt.cameras <= len(MOUNTS):
         raise ValueError(f"--cameras must be 1..{len(MOUNTS)}")
     rng = np.random.default_rng(opt.seed)
-    pattern = {"type": "checkerboard", "inner_corners": [9, 6], "square_size": 0.03} if opt.pattern else None
-    scene = Scene(rng, pattern)
+    pattern = _board(opt)
+    scene = Scene(rng, pattern)  # first from the seed, so scene_from_simulation rebuilds it
     cams = [camera_for(j, opt) for j in range(opt.cameras)]
     mounts = [mount_pose(j, rng) for j in range(opt.cameras)]
     true_ee = trajectory(rng, opt.frames, mounts[0])
@@ -324,6 +324,18 @@ def simulate(out_dir, opt: SimOptions, progress: bool = True) -> Path:
             gt["pattern_origin_in_base"] = [float(x) for x in scene.board_origin + np.array([1, 1, 0]) * pattern["square_size"]]
         atomic_write_text(stage / "ground_truth.yaml", yaml.safe_dump(gt, sort_keys=False))
     return out_dir
+
+
+def _board(opt: SimOptions) -> dict | None:
+    return {"type": "checkerboard", "inner_corners": [9, 6], "square_size": 0.03} if opt.pattern else None
+
+
+def scene_from_simulation(simulation: dict) -> Scene:
+    """The true scene of a simulated dataset, rebuilt from its ground_truth.yaml ``simulation`` entry
+    (the options it was made with): ``simulate`` builds the scene first from the seeded generator."""
+    fields = SimOptions.__dataclass_fields__
+    opt = SimOptions(**{k: v for k, v in simulation.items() if k in fields})
+    return Scene(np.random.default_rng(opt.seed), _board(opt))
 
 
 def _write_png(path: Path, img):

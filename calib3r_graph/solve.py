@@ -14,24 +14,25 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from scipy import stats
 
 from calib3r_graph.dataset import Dataset
 from calib3r_graph.errors import SolveError
 from calib3r_graph.graph import (Keys, NoiseOptions, add_depth_correction_priors, add_robot_factors,
                                  add_scale_gauge_factors, add_scene_factors, depth_correction, initial_values,
-                                 match_residuals, point_sqrt_info, robot_chi2)
+                                 match_residuals, point_sqrt_info, robot_chi2, robot_views)
 from calib3r_graph.init import initialise
 from calib3r_graph.observations import build_observations
 from calib3r_graph.predictions import Predictions, split_view_id
-from calib3r_graph.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
-                                      systematic_error_gain)
+from calib3r_graph.systematic import systematic_errors
+from calib3r_graph.uncertainty import (check_motion, covariance_diagnostics, motion_diagnostics,
+                                      noise_calibration, systematic_error_gain)
 
 log = logging.getLogger(__name__)
 
-CHI2_3_MEDIAN = stats.chi2.ppf(0.5, 3)
-OUTLIER_CUT_CHI2 = stats.chi2.ppf(0.999, 3)  # matches beyond this are dropped
-HUBER_K = np.sqrt(stats.chi2.ppf(0.95, 3))
+# chi2(3) quantiles (scipy.stats.chi2.ppf(q, 3); written out, since importing scipy.stats takes ~1 s)
+CHI2_3_MEDIAN = 2.3659738843753377  # q = 0.5
+OUTLIER_CUT_CHI2 = 16.266236196238129  # q = 0.999: matches beyond this are dropped
+HUBER_K = np.sqrt(7.814727903251178)  # q = 0.95
 
 
 @dataclass
@@ -50,7 +51,7 @@ class SolveOptions:
 @dataclass
 class Solution:
     ee_T_cam: dict  # camera -> Pose3
-    covariance: dict  # camera -> 6x6 (rad, m; GTSAM Pose3 tangent order)
+    covariance: dict  # camera -> 6x6 total: model + systematic (rad, m; GTSAM Pose3 tangent order)
     metric_scale: dict  # camera -> (value, sigma)
     base_T_cam: dict  # view -> Pose3
     depth_scale: dict  # view -> metres per frontend unit
@@ -65,6 +66,8 @@ class Solution:
     keys: object = field(default=None, repr=False)
     observations: list = field(default_factory=list, repr=False)
     scene_weight_scale: float = 1.0
+    covariance_model: dict = field(default_factory=dict)  # camera -> 6x6 marginal of the noise model alone
+    systematic: dict = field(default_factory=dict)  # camera -> systematic.SystematicError
 
 
 def _lm(graph, values, max_iterations, label, progress=True):
@@ -110,6 +113,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     if len(frames) < MIN_ROBOT_POSES:
         raise SolveError(f"{ds.root}: only {len(frames)} robot pose(s) with predictions; hand-eye calibration "
                          f"needs at least {MIN_ROBOT_POSES}, with rotations about two different axes")
+    check_motion(ds.base_T_ee, frames, str(ds.root / ds.meta["robot"]["poses"]))  # before any initialisation
     timings = {}
     t = time.perf_counter()
     observations = build_observations(preds, opt.max_matches_per_pair, seed=opt.seed)
@@ -120,7 +124,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     t = time.perf_counter()
     visual_poses = None
     if opt.init == "colmap":
-        from calib3r_graph.frontends.colmap import read_poses_csv
+        from calib3r_graph.predictions import read_poses_csv
 
         visual_poses = read_poses_csv(ds.root / "predictions" / preds.name / "poses.csv")
     init = initialise(sorted(preds.views), observations, ds.base_T_ee, str(ds.root / ds.meta["robot"]["poses"]),
@@ -194,11 +198,21 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     try:
         marginals = gtsam.Marginals(graph, values)
     except RuntimeError as e:
-        raise SolveError(f"the calibration is not observable from this data ({e}); add robot poses with "
-                         "rotation about different axes") from None
-    covariance = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
-    metric = {c: (values.atDouble(keys.metric(c)), float(np.sqrt(marginals.marginalCovariance(keys.metric(c))[0, 0])))
-              for c in cameras}
+        from calib3r_graph.errors import library_error
+
+        cause = (library_error(e) or (next(iter(str(e).strip().splitlines()), ""), 0))[0]
+        raise SolveError(f"the calibration is not observable from this data ({cause})") from None
+    covariance_model = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
+    # The systematic part: a kinematic error field measured from the robot residuals (systematic.py).
+    robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), ds.base_T_ee[split_view_id(v)[1]])
+             for v in robot_views(keys, views)]
+    systematic = systematic_errors(graph, values, robot, {c: (keys.hand_eye(c), keys.metric(c)) for c in cameras})
+    covariance = {c: covariance_model[c] + systematic[c].covariance for c in cameras}
+    metric = {}
+    for c in cameras:
+        lam = values.atDouble(keys.metric(c))
+        sigma_model = float(np.sqrt(marginals.marginalCovariance(keys.metric(c))[0, 0]))
+        metric[c] = (lam, float(np.hypot(sigma_model, lam * systematic[c].scale_sigma_rel)))
     timings["covariance"] = time.perf_counter() - t
     used_frames = {split_view_id(v)[1] for v in views}
     diagnostics = motion_diagnostics(ds.base_T_ee, used_frames)
@@ -220,10 +234,11 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                  "matches_total": int(sum(len(o) for o in observations)),
                  "match_residual_median_rel": float(np.median(residuals)),
                  # mm of ee_T_cam translation per mm of systematic relative-translation error (uncertainty.py)
-                 "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": gain_axis.tolist()}}
+                 "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": gain_axis.tolist()},
+                 "systematic": {c: systematic[c].to_json() for c in cameras}}
     return Solution(
         ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras},
-        covariance=covariance, metric_scale=metric,
+        covariance=covariance, covariance_model=covariance_model, systematic=systematic, metric_scale=metric,
         base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
         depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
         depth_correction={v: depth_correction(values, keys, v) for v in views},

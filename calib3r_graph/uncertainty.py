@@ -58,6 +58,50 @@ def _direction(d) -> str:
     return f"[{d[0]:.2f} {d[1]:.2f} {d[2]:.2f}]"
 
 
+MIN_ROTATION_DEG = 2.0  # below this between every two poses, the robot "did not rotate"
+MIN_MOVE_MM = 1.0  # ... and with less translation than this, it "did not move"
+
+
+def relative_rotations(base_T_ee: dict, frames) -> np.ndarray:
+    """Rotation vectors (rad, in the first pose's ee frame) of the flange between every two frames, (P, 3)."""
+    R = np.array([base_T_ee[f].rotation().matrix() for f in frames])
+    iu, ju = np.triu_indices(len(R), 1)
+    rel = np.einsum("pji,pjk->pik", R[iu], R[ju])  # R_a^T R_b
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    angle = np.arccos(cos)
+    vee = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], 1)
+    sin = np.sin(angle)
+    factor = np.where(sin > 1e-9, angle / (2 * np.where(sin > 1e-9, sin, 1.0)), 0.5)
+    return vee * factor[:, None]
+
+
+def check_motion(base_T_ee: dict, frames, robot_file="robot_poses.csv"):
+    """Before initialising: a robot that did not move, or only translated, cannot calibrate a
+    hand-eye transform. Raises SolveError saying which, how much the poses rotate about which
+    ee axes, and what to record instead."""
+    from calib3r_graph.errors import SolveError
+
+    frames = sorted(f for f in frames if f in base_T_ee)
+    if len(frames) < 2:
+        return
+    w = relative_rotations(base_T_ee, frames)
+    max_deg = float(np.degrees(np.linalg.norm(w, axis=1).max()))
+    if max_deg >= MIN_ROTATION_DEG:
+        return
+    per_axis = np.degrees(np.abs(w).max(axis=0))
+    t = np.array([base_T_ee[f].translation() for f in frames])
+    move_mm = float(np.linalg.norm(t[:, None] - t[None], axis=2).max() * 1e3)
+    rotation = (f"the flange rotates at most {max_deg:.2f} deg between any two poses "
+                f"(about ee x {per_axis[0]:.2f}, y {per_axis[1]:.2f}, z {per_axis[2]:.2f} deg)")
+    advice = ("record 8-10 poses that each rotate the flange 30-90 degrees from the others about at least two "
+              "different axes (e.g. tilt and roll the tool), keeping the scene in view")
+    if move_mm < MIN_MOVE_MM:
+        raise SolveError(f"{robot_file}: the robot did not move: all {len(frames)} poses are the same (within "
+                         f"{move_mm:.2f} mm; {rotation}); {advice}")
+    raise SolveError(f"{robot_file}: the robot did not rotate: the poses differ by translations only (up to "
+                     f"{move_mm:.0f} mm) and {rotation}; hand-eye calibration needs rotation: {advice}")
+
+
 def motion_diagnostics(base_T_ee: dict, frames) -> list:
     """Plain-words warnings about the robot motion (too few poses, too little or degenerate rotation)."""
     import gtsam
@@ -142,70 +186,4 @@ def views_by_camera(views) -> dict:
     out = {}
     for v in views:
         out.setdefault(split_view_id(v)[0], []).append(v)
-    return out
-
-
-def jackknife(ds, preds, opt, sol, progress=True) -> dict:
-    """Leave-one-robot-pose-out cross-check of the reported covariance (no ground truth needed).
-
-    For each frame the problem is solved without it; the spread of ee_T_cam over the n
-    solutions (in the tangent space at the full solution) gives the jackknife covariance
-    ``(n - 1)/n * sum (xi_i - mean)(xi_i - mean)^T``. Returns, per camera, the jackknife
-    sigmas and their ratio to the reported ones (about 1 when the covariance is right;
-    large when it is over-confident, e.g. unmodelled correlated errors).
-    """
-    import dataclasses
-    import logging
-
-    frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
-    xis = {c: [] for c in sol.ee_T_cam}
-    opt = dataclasses.replace(opt, progress=False)
-    package_log = logging.getLogger("calib3r_graph")
-    level = package_log.level
-    package_log.setLevel(logging.ERROR)  # the sub-solves repeat the main solve's warnings
-    try:
-        _leave_one_out(ds, preds, opt, frames, xis, progress)
-    finally:
-        package_log.setLevel(level)
-    return _jackknife_report(sol, xis)
-
-
-def _leave_one_out(ds, preds, opt, frames, xis, progress):
-    """Append each leave-one-frame-out solution's ee_T_cam to xis[camera]."""
-    from tqdm import tqdm
-
-    from calib3r_graph.compare import subset_dataset, subset_predictions
-    from calib3r_graph.errors import Calib3rError
-    from calib3r_graph.solve import solve
-
-    for f in tqdm(frames, desc="jackknife", disable=None if progress else True, leave=False):
-        keep = [g for g in frames if g != f]
-        try:
-            s = solve(subset_dataset(ds, keep), subset_predictions(preds, keep), opt)
-        except Calib3rError:
-            continue
-        for c, X in s.ee_T_cam.items():
-            if c in xis:
-                xis[c].append(X)
-
-
-def _jackknife_report(sol, xis) -> dict:
-    import gtsam
-
-    from calib3r_graph.results import covariance_in_ee_frame
-
-    out = {}
-    for c, xs in xis.items():
-        if len(xs) < 3:
-            continue
-        xs = np.array([gtsam.Pose3.Logmap(sol.ee_T_cam[c].between(X)) for X in xs])
-        n = len(xs)
-        C = (n - 1) / n * (xs - xs.mean(0)).T @ (xs - xs.mean(0))
-        jk = np.sqrt(np.diag(covariance_in_ee_frame(sol.ee_T_cam[c], C)))
-        rep = np.sqrt(np.diag(covariance_in_ee_frame(sol.ee_T_cam[c], np.asarray(sol.covariance[c]))))
-        out[c] = {"solves": n,
-                  "sigma_jackknife": {"rx_deg": float(np.degrees(jk[0])), "ry_deg": float(np.degrees(jk[1])),
-                                      "rz_deg": float(np.degrees(jk[2])), "x_mm": float(jk[3] * 1e3),
-                                      "y_mm": float(jk[4] * 1e3), "z_mm": float(jk[5] * 1e3)},
-                  "ratio_to_reported": [float(r) for r in jk / rep]}
     return out

@@ -14,12 +14,14 @@ from calib3r_graph.graph import NoiseOptions
 from calib3r_graph.pattern import Detection, board_points, camera_intrinsics, opencv_hand_eye, pattern_ba
 
 
-def synthetic_board_recording(corner_px, robot_mm, robot_deg, n=25, seed=0, printed_scale=1.0, cam=None):
+def synthetic_board_recording(corner_px, robot_mm, robot_deg, n=25, seed=0, printed_scale=1.0, cam=None,
+                              distance=(0.45, 0.8), field_mm_per_m=0.0):
     """A 9x6 board 0.45-0.8 m in front of an eye-in-hand camera, seen from n flange poses; the
     board as printed is ``printed_scale`` times its nominal size. The distance varies: without
     that, the board's scale and the hand-eye translation along the optical axis are nearly one
     direction (every method then leans on the nominal square size). ``cam``: the true camera
-    (default a 600 px pinhole)."""
+    (default a 600 px pinhole). ``field_mm_per_m``: a systematic robot error, the measured flange
+    positions off by ``L (p - p_mean)`` with L's entries drawn at that rms (a kinematic error)."""
     rng = np.random.default_rng(seed)
     pattern = {"type": "checkerboard", "inner_corners": [9, 6], "square_size": 0.03}
     cam = cam or Camera("cam0", "PINHOLE", 640, 480, (600.0, 600.0, 320.0, 240.0))
@@ -32,7 +34,7 @@ def synthetic_board_recording(corner_px, robot_mm, robot_deg, n=25, seed=0, prin
         f = f"{i:04d}"
         # Look at the board centre from 0.45-0.8 m, with varied viewing directions and roll.
         d = np.array([0.0, 0.0, 1.0]) + rng.normal(scale=0.35, size=3) * [1, 1, 0]
-        eye = centre + rng.uniform(0.45, 0.8) * d / np.linalg.norm(d)
+        eye = centre + rng.uniform(*distance) * d / np.linalg.norm(d)
         z = (centre - eye) / np.linalg.norm(centre - eye)
         x = np.cross(rng.normal(size=3), z)
         x /= np.linalg.norm(x)
@@ -44,6 +46,11 @@ def synthetic_board_recording(corner_px, robot_mm, robot_deg, n=25, seed=0, prin
         pc = np.array([cam_T_board.transformFrom(printed_scale * p) for p in obj])
         uv = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), cam.K, cam.dist)[0].reshape(-1, 2)
         dets.append(Detection(f, uv + rng.normal(scale=corner_px, size=uv.shape), cam_T_board, 0.0))
+    if field_mm_per_m:
+        L = rng.normal(scale=field_mm_per_m * 1e-3, size=(3, 3))
+        mean = np.mean([T.translation() for T in truth.values()], axis=0)
+        measured = {f: gtsam.Pose3(T.rotation(), T.translation() + L @ (truth[f].translation() - mean))
+                    for f, T in measured.items()}
     ds = Dataset(Path("."), {"cam0": cam}, measured, pattern)
     return ds, dets, ee_T_cam
 
@@ -105,3 +112,27 @@ def test_pattern_ba_refines_the_whole_lens_model():
     # With the given intrinsics held fixed the same data is centimetres off: the test has teeth.
     fixed = pattern_ba(ds, {"cam0": dets}, noise, init, refine_intrinsics=False, estimate_board_scale=False)
     assert np.linalg.norm(fixed.ee_T_cam["cam0"].translation() - truth.translation()) > 5e-3
+
+
+def test_pattern_ba_keeps_the_nominal_scale_when_the_motion_cannot_measure_it():
+    """rwhe_kuka_2's case: the camera orbits the board at a nearly constant distance, so the
+    board's scale and the hand-eye along the optical axis are nearly one direction, and a
+    kinematic error of 2 mm/m across the workspace moves the robot's measurement of the scale
+    by percent. pattern-ba weighs that measurement by its statistical and systematic sigma
+    against the nominal size (0.3 % print tolerance): it stays near the nominal scale, lands
+    near the truth, and its total covariance covers the error."""
+    noise = NoiseOptions()
+    ds, dets, truth = synthetic_board_recording(0.05, 0.05, 0.005, n=28, seed=3, distance=(0.49, 0.51),
+                                                field_mm_per_m=2.0)
+    init = {"cam0": opencv_hand_eye(ds, dets, "park")}
+    res = pattern_ba(ds, {"cam0": dets}, noise, init, refine_intrinsics=False)
+    est = res.board_scale_estimate
+    assert abs(est["measured"] - 1) > 0.01, est  # the robot alone is percent off: the test has teeth
+    assert est["measured_sigma_systematic"] > est["measured_sigma_statistical"], est
+    assert abs(res.board_scale - 1) < 0.003 and res.board_scale_sigma < 0.003, est
+    X = res.ee_T_cam["cam0"]
+    assert np.linalg.norm(X.translation() - truth.translation()) < 3e-3
+    xi = gtsam.Pose3.Logmap(X.between(truth))
+    assert xi @ np.linalg.solve(res.covariance["cam0"], xi) < 22.5
+    # The noise model alone does not cover it.
+    assert xi @ np.linalg.solve(res.covariance_model["cam0"], xi) > 22.5

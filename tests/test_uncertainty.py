@@ -106,7 +106,7 @@ def test_jackknife_agrees_with_the_reported_covariance_on_simulated_data(simulat
     from calib3r_graph.dataset import load_dataset
     from calib3r_graph.predictions import load_predictions
     from calib3r_graph.solve import SolveOptions, solve
-    from calib3r_graph.uncertainty import jackknife
+    from calib3r_graph.jackknife import jackknife
 
     root = simulated(seed=61, frames=12)
     ds = load_dataset(root)

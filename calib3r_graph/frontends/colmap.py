@@ -26,7 +26,7 @@ from tqdm import tqdm
 from calib3r_graph.errors import InputError, SolveError
 from calib3r_graph.frontends.common import covisibility_edges
 from calib3r_graph.output import atomic_write_text
-from calib3r_graph.predictions import PairMatches, ViewPrediction, save_predictions, view_id
+from calib3r_graph.predictions import PairMatches, ViewPrediction, read_poses_csv, save_predictions, view_id  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -185,22 +185,6 @@ def predict_colmap(ds, name="colmap", neighbours=6, max_features=2048, progress=
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return name
-
-
-def read_poses_csv(path: Path) -> dict:
-    """``poses.csv`` written by this frontend -> {view: world_T_cam 4x4 (COLMAP units)}."""
-    if not path.is_file():
-        raise InputError(path, "missing: --init colmap needs predictions made by the colmap frontend")
-    out = {}
-    try:
-        rows = list(csv.reader(path.read_text().splitlines()))
-        for i, row in enumerate(rows[1:], start=2):
-            T = np.eye(4)
-            T[:3] = np.array([float(x) for x in row[1:13]]).reshape(3, 4)
-            out[row[0]] = T
-    except (ValueError, IndexError) as e:
-        raise InputError(path, f"row {i}: not a pose ({e})") from None
-    return out
 
 
 def colmap_trajectory(ds, progress=False, max_features=2048) -> dict:

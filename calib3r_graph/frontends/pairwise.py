@@ -1,0 +1,835 @@
+"""Pairwise RGB frontend: two-view geometry per co-visible pair, aggregated per view.
+
+No global mapper has to succeed: like a foundation model's pairwise pointmaps, every pair of
+views stands on its own, and a view is usable as soon as one pair with it is.
+
+1. **Features**, once per image: the image is undistorted onto a pinhole grid with the same
+   K (as every frontend here), downscaled so its long side is at most ``max_side`` px for
+   extraction, and described by RootSIFT (OpenCV SIFT, L1-normalised, square-rooted).
+   Keypoints are scaled back to the full-resolution grid. Keypoints OpenCV duplicates for a
+   second orientation share one ``kp_id`` (same location), so depths from different pairs
+   meet at one pixel.
+2. **Two-view geometry**, once per pair (:func:`two_view_geometry`): mutual nearest
+   neighbours that pass the ratio test (0.8), essential-matrix RANSAC (OpenCV USAC, 1 px, on
+   the calibrated rays) and the relative pose ``x_b = R x_a + t`` with ``|t| = 1``. Then a
+   guided pass: the ratio test and the mutual check again, among the candidates within 2 px
+   of each other's epipolar lines (a chessboard's look-alike corners defeat a whole-image
+   ratio test, not one along a line), and the pose refined on those matches (Sampson error,
+   Huber). The matches are moved onto the epipolar geometry (first-order optimal, Sampson)
+   and triangulated; cheirality and a 2 px check. Each pair thus gives a sparse pointmap in
+   both of its views, in its own unit: its baseline.
+3. **The robot helps, never as ground truth** (:func:`robot_consistent`, :func:`rescue_pairs`).
+   It only rejects pairs, or narrows where matches are searched; every pose, depth and scale
+   written comes from the images.
+
+   - The flange's relative rotation angle equals the camera's whatever the hand-eye rotation
+     (rotation angles are invariant under conjugation): a pair whose two-view rotation angle
+     differs by more than ``angle_tol_deg`` has a wrong essential matrix and is dropped.
+   - A rough hand-eye rotation, by RANSAC over the pairs' rotation axes (AX = XB): pairs whose
+     rotation is more than ``rotation_tol_deg`` from ``X^T R_ee X`` are dropped.
+   - A rough hand-eye translation, by RANSAC over triples of pairs: pairs whose translation
+     direction is more than ``translation_tol_deg`` from the predicted one are dropped.
+   - Robot-guided matching for weakly connected views (fewer than ``rescue_below`` usable
+     pairs): the rough hand-eye and the flange motion predict a failed or rejected pair's
+     epipolar geometry, putative matches are searched within ``rescue_band_deg`` of it, and
+     the pose is estimated from those matches as above; it must pass the same checks.
+4. **Per-pair scale, handled explicitly in the aggregation** (:func:`aggregate`). Every
+   pair's triangulation is in its own unit (its baseline), so a view's pairwise depths differ
+   by one unknown factor per pair. Per view, the reference is, of the three pairs with the most
+   well-triangulated points, the one most other pairs agree with (a wrong geometry with many
+   points must not set the unit); the other pairs are brought to its unit one by one, each by the
+   weighted median of the log depth ratios on the keypoints it shares with the pairs
+   already aligned (the pair sharing most goes first). A pair that shares fewer than
+   ``min_shared`` keypoints, or whose ratios scatter by more than ``max_scale_mad`` (a wrong
+   geometry), gives no depth to that view. Each view is then in one unit of its own; the
+   graph's per-view depth scale ``s_v`` absorbs the unit, so no pair's scale is a variable.
+5. **Aggregation (the paper's eq. 1)**: per keypoint ``d = sum_e C_e d_e / sum_e C_e`` over
+   the pairs, with ``C_e`` from the triangulation angle (full at 5 degrees or more, as in
+   the colmap frontend); entries more than ``max_depth_spread`` from the keypoint's
+   weighted median are given no weight first. The conf written is eq. 1's mean of the
+   ``C_e``. The depth is splatted onto the 2x2 pixels around each keypoint (conf 0
+   elsewhere), so bilinear sampling at the keypoint returns it.
+6. **Matches**: every verified pair's inlier matches, on a top-k co-visibility graph by the
+   number of matches with depth at both ends; match confidence ``1 - distance ratio``.
+
+A view with no usable pair is named in a warning and left out; the rest go on.
+
+Features and pair geometries can be cached on disk (``cache_dir``), keyed by the image file
+and every parameter that changes them, so subsets of a recording only select pairs,
+aggregate and solve (``bench/views_real.py``).
+"""
+
+import hashlib
+import itertools
+import json
+import logging
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import gtsam
+import numpy as np
+from tqdm import tqdm
+
+from calib3r_graph.errors import InputError, SolveError
+from calib3r_graph.frontends.common import aggregate_pointmaps, covisibility_edges, load_gray, undistort_maps
+from calib3r_graph.geometry import hand_eye_rotation, rotation_angle_deg
+from calib3r_graph.observations import sample_bilinear
+from calib3r_graph.predictions import PairMatches, Predictions, ViewPrediction, save_predictions, split_view_id, view_id
+
+log = logging.getLogger(__name__)
+
+FULL_CONF_ANGLE_DEG = 5.0  # triangulation angle at which a depth gets full confidence
+
+
+@dataclass(frozen=True)
+class PairwiseOptions:
+    # features
+    max_side: int = 1600  # long side of the image SIFT sees (px); keypoints are scaled back
+    n_features: int = 4000
+    contrast_threshold: float = 0.02  # OpenCV's default 0.04 is twice COLMAP's peak threshold
+    # two-view geometry
+    ratio: float = 0.8
+    ransac_px: float = 1.0  # essential-matrix inlier threshold on the full-resolution grid
+    min_inliers: int = 30
+    max_reprojection_px: float = 2.0
+    guided: bool = True  # second matching pass along the epipolar lines of the first pose
+    # robot consistency (never ground truth: it only rejects pairs)
+    angle_tol_deg: float = 1.0
+    rotation_tol_deg: float = 1.0
+    translation_tol_deg: float = 5.0
+    rescue: bool = True  # robot-guided matching for the pairs of weakly connected views
+    rescue_below: int = 6  # ... views with fewer usable pairs than this
+    rescue_band_deg: float = 0.5  # half-width of the predicted epipolar band (angle at the camera)
+    # aggregation
+    min_pair_angle_deg: float = 0.5  # median triangulation angle below which a pair gives no depth
+    min_shared: int = 8
+    max_scale_mad: float = 0.05  # robust scatter (log) of a pair's depth ratios to the reference
+    max_depth_spread: float = 0.05  # relative deviation from a keypoint's median depth
+    min_view_points: int = 30
+    neighbours: int = 8
+
+    def feature_key(self) -> dict:
+        return {"max_side": self.max_side, "n_features": self.n_features,
+                "contrast_threshold": self.contrast_threshold, "v": 1}
+
+    def pair_key(self) -> dict:
+        return {"ratio": self.ratio, "ransac_px": self.ransac_px, "min_inliers": self.min_inliers,
+                "max_reprojection_px": self.max_reprojection_px, "guided": self.guided, **self.feature_key(), "v": 2}
+
+
+@dataclass
+class Features:
+    uv: np.ndarray  # (N, 2) float64, undistorted full-resolution pixels (OpenCV convention)
+    desc: np.ndarray  # (N, 128) float32 RootSIFT, unit L2 norm
+    kp_id: np.ndarray  # (N,) int: features at the same location share an id
+
+
+@dataclass
+class PairGeometry:
+    view_a: str
+    view_b: str
+    ia: np.ndarray  # (n,) feature indices in a
+    ib: np.ndarray  # (n,) feature indices in b
+    depth_a: np.ndarray  # (n,) z in camera a, in the pair's unit (|t| = 1)
+    depth_b: np.ndarray
+    angle: np.ndarray  # (n,) triangulation angle, rad
+    conf: np.ndarray  # (n,) 1 - distance ratio
+    R: np.ndarray  # x_b = R x_a + t
+    t: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+    def __len__(self):
+        return len(self.ia)
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def _digest(obj) -> str:
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _image_key(ds, cam, frame) -> dict:
+    p = ds.image_path(cam.name, frame)
+    st = p.stat()
+    return {"image": str(p.resolve()), "size": st.st_size, "mtime": int(st.st_mtime), "params": list(cam.params),
+            "w": cam.width, "h": cam.height}
+
+
+def extract_features(ds, cam, frame, opt: PairwiseOptions) -> Features:
+    gray = load_gray(ds.image_path(cam.name, frame))
+    if gray.shape != (cam.height, cam.width):
+        raise InputError(ds.image_path(cam.name, frame), f"image is {gray.shape[1]}x{gray.shape[0]}, camera "
+                                                        f"{cam.name} is {cam.width}x{cam.height}")
+    maps = undistort_maps(cam)
+    if maps is not None:
+        gray = cv2.remap(gray, *maps, cv2.INTER_LINEAR)
+    s = min(1.0, opt.max_side / max(gray.shape))
+    small = cv2.resize(gray, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else gray
+    sift = cv2.SIFT_create(nfeatures=opt.n_features, contrastThreshold=opt.contrast_threshold)
+    kp, desc = sift.detectAndCompute(small, None)
+    if desc is None or not kp:
+        return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0, np.int64))
+    pts = np.array([k.pt for k in kp], dtype=np.float64)
+    # small-image pixel centres -> full-resolution pixel centres (OpenCV: centre of pixel 0 at 0)
+    uv = (pts + 0.5) / np.array([small.shape[1] / gray.shape[1], small.shape[0] / gray.shape[0]]) - 0.5
+    desc = desc.astype(np.float32)
+    desc /= np.maximum(desc.sum(1, keepdims=True), 1e-12)  # RootSIFT
+    desc = np.sqrt(desc)
+    _, kp_id = np.unique(np.round(pts * 100).astype(np.int64), axis=0, return_inverse=True)
+    return Features(uv, desc, kp_id.ravel())
+
+
+def features_for(ds, views, opt: PairwiseOptions, cache_dir=None, progress=True, workers=2) -> dict:
+    """{view: Features} for the given view ids, from the cache where present."""
+    cache = Path(cache_dir) / "features" if cache_dir else None
+
+    def one(vid):
+        cam_name, frame = split_view_id(vid)
+        cam = ds.cameras[cam_name]
+        path = None
+        if cache is not None:
+            path = cache / f"{cam_name}_{frame}_{_digest([_image_key(ds, cam, frame), opt.feature_key()])}.npz"
+            if path.is_file():
+                with np.load(path) as z:
+                    return vid, Features(z["uv"], z["desc"].astype(np.float32), z["kp_id"])
+        f = extract_features(ds, cam, frame, opt)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+            np.savez(tmp, uv=f.uv, desc=f.desc.astype(np.float16), kp_id=f.kp_id)
+            os.replace(tmp, path)
+        return vid, f
+
+    out = {}
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        for vid, f in tqdm(pool.map(one, views), total=len(views), desc="pairwise: features",
+                           disable=None if progress else True, leave=False):
+            out[vid] = f
+    return out
+
+
+# ----------------------------------------------------------------------------- two-view geometry
+
+
+def _mutual_ratio(S, ratio):
+    """Mutual best matches passing the ratio test, from a similarity matrix (a rows, b columns):
+    (ia, ib, distance ratio). RootSIFT descriptors have unit norm, so ``|a - b|^2 = 2 - 2 a.b``."""
+    rows = np.arange(S.shape[0])
+    best = S.argmax(1)
+    s1 = S[rows, best]
+    S[rows, best] = -np.inf
+    s2 = S.max(1)
+    S[rows, best] = s1
+    d1 = np.sqrt(np.maximum(2 - 2 * s1, 0))
+    d2 = np.sqrt(np.maximum(2 - 2 * s2, 0))
+    r = d1 / np.maximum(d2, 1e-9)
+    keep = np.flatnonzero(r < ratio)
+    # mutual check, on the survivors' columns only (a full column argmax is the slow axis)
+    keep = keep[S[:, best[keep]].max(0) <= s1[keep]]
+    return rows[keep], best[keep], r[keep]
+
+
+def sampson_correction(E, xa, xb):
+    """The smallest (first-order) moves of xa, xb (normalised, (n, 2)) onto x_b^T E x_a = 0."""
+    ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
+    Ea, Eb = ha @ E.T, hb @ E
+    k = (hb * Ea).sum(1) / (Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2)
+    return xa - k[:, None] * Eb[:, :2], xb - k[:, None] * Ea[:, :2]
+
+
+def _triangulate(xa, xb, R, t):
+    """Rays' closest points: xa, xb (n, 2) normalised (already optimally corrected); returns
+    (X in a (n, 3), depth_a, depth_b, angle rad)."""
+    fa = np.c_[xa, np.ones(len(xa))]
+    fb = np.c_[xb, np.ones(len(xb))]
+    ra = fa @ R.T  # a's rays in b's frame
+    # lambda_a ra + t = lambda_b fb  ->  least squares in (lambda_a, lambda_b)
+    A11, A12, A22 = (ra * ra).sum(1), -(ra * fb).sum(1), (fb * fb).sum(1)
+    b1, b2 = -(ra * t).sum(1), (fb * t).sum(1)
+    det = A11 * A22 - A12 * A12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        la = (A22 * b1 - A12 * b2) / det
+        lb = (A11 * b2 - A12 * b1) / det
+    X = fa * la[:, None]
+    centre_b = -R.T @ t
+    u = X / np.linalg.norm(X, axis=1, keepdims=True)
+    v = X - centre_b
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    angle = np.arccos(np.clip((u * v).sum(1), -1, 1))
+    return X, la, lb, angle
+
+
+def two_view_geometry(fa: Features, fb: Features, K_a, K_b, opt: PairwiseOptions, va="a", vb="b", prior_E=None,
+                      prior_px=None):
+    """Verified matches, relative pose and triangulation of one pair, or None.
+
+    ``prior_E`` (normalised coordinates, ``x_b^T E x_a = 0``): the putative matches are then
+    searched within ``prior_px`` of its epipolar lines instead of the whole image (guided
+    matching); the pose is still estimated from the images alone."""
+    if len(fa.desc) < opt.min_inliers or len(fb.desc) < opt.min_inliers:
+        return None
+    S = fa.desc @ fb.desc.T  # RootSIFT: |a - b|^2 = 2 - 2 a.b
+    if prior_E is None:
+        ia, ib, r = _mutual_ratio(S, opt.ratio)
+    else:
+        ia, ib, r = guided_matches(fa, fb, K_a, K_b, prior_E, opt.ratio, prior_px, S)
+    stats = {"putative": int(len(ia)), "robot_guided": prior_E is not None}
+    if len(ia) < opt.min_inliers:
+        return None
+    na = cv2.undistortPoints(fa.uv[ia].reshape(-1, 1, 2), K_a, None).reshape(-1, 2)
+    nb = cv2.undistortPoints(fb.uv[ib].reshape(-1, 1, 2), K_b, None).reshape(-1, 2)
+    f = 0.5 * (K_a[0, 0] + K_b[0, 0])
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), cv2.USAC_ACCURATE, 0.9999, opt.ransac_px / f)
+    if E is None or mask is None or E.shape != (3, 3):
+        return None
+    inl = mask.ravel().astype(bool)
+    if inl.sum() < opt.min_inliers:
+        return None
+    _, R, t, pose_mask = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3), mask=mask[inl].copy())
+    t = t.ravel() / np.linalg.norm(t)
+    E = _skew(t) @ R
+    if opt.guided:
+        # Guided matching: the ratio test and the mutual check again, among the candidates
+        # that lie within the inlier threshold of each other's epipolar lines.
+        ia, ib, r = guided_matches(fa, fb, K_a, K_b, E, opt.ratio, 2 * opt.ransac_px, S)
+        stats["guided"] = int(len(ia))
+        if len(ia) < opt.min_inliers:
+            return None
+        na = cv2.undistortPoints(fa.uv[ia].reshape(-1, 1, 2), K_a, None).reshape(-1, 2)
+        nb = cv2.undistortPoints(fb.uv[ib].reshape(-1, 1, 2), K_b, None).reshape(-1, 2)
+        R, t = refine_pose(R, t, na, nb, opt.ransac_px / f)
+        E = _skew(t) @ R
+        inl = np.ones(len(ia), bool)
+    idx = np.flatnonzero(inl)
+    # First-order optimal (Sampson) correction onto the final pose's epipolar geometry, then the rays meet.
+    ca, cb = sampson_correction(E, na[idx], nb[idx])
+    moved = np.maximum(np.linalg.norm((ca - na[idx]) * K_a[0, 0], axis=1),
+                       np.linalg.norm((cb - nb[idx]) * K_b[0, 0], axis=1))
+    X, da, db, angle = _triangulate(ca, cb, R, t)
+    ok = np.isfinite(da) & np.isfinite(db) & (da > 0) & (db > 0) & (moved < opt.max_reprojection_px) & (angle > 0)
+    idx = idx[ok]
+    if len(idx) < opt.min_inliers:
+        return None
+    stats.update(inliers=int(len(idx)), median_angle_deg=float(np.degrees(np.median(angle[ok]))),
+                 median_error_px=float(np.median(moved[ok])))
+    return PairGeometry(va, vb, ia[idx], ib[idx], da[ok], db[ok], angle[ok], (1.0 - r[idx]).clip(0.05, 1.0),
+                        R, t, stats)
+
+
+def _skew(t):
+    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+
+
+def _homogeneous_rays(K, uv):
+    return np.c_[uv, np.ones(len(uv))] @ np.linalg.inv(K).T
+
+
+def guided_matches(fa: Features, fb: Features, K_a, K_b, E, ratio, max_px, S=None):
+    """Mutual ratio-test matches among the pairs within ``max_px`` of each other's epipolar line
+    (``S``: the descriptor similarities, if already computed)."""
+    xa, xb = _homogeneous_rays(K_a, fa.uv), _homogeneous_rays(K_b, fb.uv)
+    la = xa @ E.T  # epipolar lines in b of a's points (normalised coordinates)
+    lb = xb @ E  # in a of b's points
+    f = 0.5 * (K_a[0, 0] + K_b[0, 0])
+    # Candidates: b's points within max_px of a's epipolar line (a few per mille of all pairs:
+    # the rest works on the list), then the same for b's line in a.
+    thr = (max_px / f * np.hypot(la[:, 0], la[:, 1])).astype(np.float32)
+    alg = la.astype(np.float32) @ xb.T.astype(np.float32)  # x_b^T E x_a
+    alg *= alg
+    i, j = np.nonzero(alg < (thr * thr)[:, None])
+    e = np.einsum("nk,nk->n", xb[j], la[i])
+    ok = np.abs(e) * f / np.hypot(lb[j, 0], lb[j, 1]) < max_px
+    i, j = i[ok], j[ok]
+    sim = S[i, j] if S is not None else np.einsum("nk,nk->n", fa.desc[i], fb.desc[j])
+    return _sparse_mutual_ratio(i, j, sim, ratio)
+
+
+def _sparse_mutual_ratio(i, j, sim, ratio):
+    """Mutual best matches passing the ratio test, among candidate pairs (i, j) with similarity sim.
+    A lone candidate is compared with the largest possible distance (2)."""
+    if len(i) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    o = np.lexsort((-sim, i))
+    i, j, sim = i[o], j[o], sim[o]
+    first = np.r_[True, i[1:] != i[:-1]]
+    has_second = np.r_[i[1:] == i[:-1], False] & first
+    s1 = sim[first]
+    s2 = np.full(len(s1), -1.0)
+    s2[has_second[first]] = sim[np.flatnonzero(has_second) + 1]
+    bi, bj = i[first], j[first]
+    r = np.sqrt(np.maximum(2 - 2 * s1, 0)) / np.maximum(np.sqrt(np.maximum(2 - 2 * s2, 0)), 1e-9)
+    # mutual: the best a of each b
+    o = np.lexsort((-sim, j))
+    col_first = np.r_[True, j[o][1:] != j[o][:-1]]
+    best_a = np.full(j.max() + 1, -1)
+    best_a[j[o][col_first]] = i[o][col_first]
+    keep = (best_a[bj] == bi) & (r < ratio)
+    return bi[keep], bj[keep], r[keep]
+
+
+def refine_pose(R, t, xa, xb, thr):
+    """(R, t) minimising the Sampson error of the matches (Huber, scale thr), |t| = 1."""
+    from scipy.optimize import least_squares
+
+    def res(p):
+        Rk = cv2.Rodrigues(p[:3])[0] @ R
+        tk = t + p[3:]
+        tk = tk / np.linalg.norm(tk)
+        E = _skew(tk) @ Rk
+        ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
+        Ea, Eb = ha @ E.T, hb @ E
+        num = (hb * Ea).sum(1)
+        return num / np.sqrt(Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2)
+
+    sol = least_squares(res, np.zeros(6), loss="huber", f_scale=thr, x_scale=1e-3, max_nfev=50)
+    Rk = cv2.Rodrigues(sol.x[:3])[0] @ R
+    tk = t + sol.x[3:]
+    return Rk, tk / np.linalg.norm(tk)
+
+
+_PAIR_ARRAYS = ("ia", "ib", "depth_a", "depth_b", "angle", "conf", "R", "t")
+
+
+def pair_geometries(ds, feats: dict, pairs, opt: PairwiseOptions, cache_dir=None, progress=True, workers=2) -> dict:
+    """{(a, b): PairGeometry or None} for the given view pairs, from the cache where present."""
+    cache = Path(cache_dir) / "pairs" if cache_dir else None
+    K = {v: ds.cameras[split_view_id(v)[0]].K for v in feats}
+
+    def one(ab):
+        a, b = ab
+        path = None
+        if cache is not None:
+            ca, fa_ = split_view_id(a)
+            cb, fb_ = split_view_id(b)
+            key = _digest([_image_key(ds, ds.cameras[ca], fa_), _image_key(ds, ds.cameras[cb], fb_), opt.pair_key()])
+            path = cache / f"{ca}_{fa_}__{cb}_{fb_}_{key}.npz"
+            if path.is_file():
+                with np.load(path) as z:
+                    if "none" in z.files:
+                        return ab, None
+                    return ab, PairGeometry(a, b, *(z[k] for k in _PAIR_ARRAYS), json.loads(str(z["stats"])))
+        g = two_view_geometry(feats[a], feats[b], K[a], K[b], opt, a, b)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+            if g is None:
+                np.savez(tmp, none=np.zeros(0))
+            else:
+                np.savez(tmp, **{k: getattr(g, k) for k in _PAIR_ARRAYS}, stats=json.dumps(g.stats))
+            os.replace(tmp, path)
+        return ab, g
+
+    out = {}
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        for ab, g in tqdm(pool.map(one, pairs), total=len(pairs), desc="pairwise: two-view geometry",
+                          disable=None if progress else True, leave=False):
+            out[ab] = g
+    return out
+
+
+# ----------------------------------------------------------------------------- the robot's help
+
+
+def _rotvec(R):
+    return cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
+
+
+def robot_consistent(geoms: dict, base_T_ee: dict, opt: PairwiseOptions, seed=0) -> tuple[dict, dict]:
+    """The pairs whose relative motion agrees with the robot's, and what was learnt.
+
+    Per camera, over the pairs of its own views (pairs across the cameras of a rig are kept
+    unchecked): (1) the camera's and the flange's relative rotation angles must agree (true for
+    any hand-eye rotation); (2) a rough hand-eye rotation, RANSAC over the pairs' rotation axes,
+    must map the flange's relative rotation onto the pair's; (3) with a rough hand-eye
+    translation, RANSAC over triples of pairs, the pair's translation direction must agree. None
+    lets the robot set anything. Returns ({pair: geometry}, info); ``info["hand_eye"][camera]``
+    holds the rough ``rotation`` (3x3) and ``translation`` (m) where they could be found."""
+    info = {"angle_rejected": [], "rotation_rejected": [], "translation_rejected": [], "hand_eye": {}}
+    cam = lambda v: split_view_id(v)[0]  # noqa: E731
+    kept = {ab: g for ab, g in geoms.items() if g is not None and cam(ab[0]) != cam(ab[1])}
+    rng = np.random.default_rng(seed)
+    for c in sorted({cam(a) for a, b in geoms if cam(a) == cam(b)}):
+        group = {ab: g for ab, g in geoms.items() if g is not None and cam(ab[0]) == c == cam(ab[1])}
+        kept.update(_robot_checks(group, base_T_ee, opt, info, info["hand_eye"].setdefault(c, {}), rng))
+    for k in ("angle_rejected", "rotation_rejected", "translation_rejected"):
+        if info[k]:
+            log.info("pairwise: %d pair(s) disagree with the robot's motion (%s): %s", len(info[k]),
+                     k.split("_")[0], ", ".join(info[k][:6]) + (" ..." if len(info[k]) > 6 else ""))
+    return kept, info
+
+
+def _robot_checks(geoms: dict, base_T_ee: dict, opt: PairwiseOptions, info: dict, hand_eye: dict, rng) -> dict:
+    """:func:`robot_consistent` for the pairs of one camera."""
+    kept = {}
+    alphas, betas, names = [], [], []
+    for (a, b), g in geoms.items():
+        if g is None:
+            continue
+        A = base_T_ee[split_view_id(a)[1]].between(base_T_ee[split_view_id(b)[1]]).rotation().matrix()
+        ang_ee, ang_cam = rotation_angle_deg(A), rotation_angle_deg(g.R)
+        if abs(ang_ee - ang_cam) > opt.angle_tol_deg:
+            info["angle_rejected"].append(f"{a}-{b} ({ang_cam:.1f} vs {ang_ee:.1f} deg)")
+            continue
+        kept[(a, b)] = g
+        if ang_ee > 3.0:
+            alphas.append(_rotvec(A))
+            betas.append(_rotvec(g.R.T))  # B = cam_a^-1 cam_b has rotation R^T (x_b = R x_a + t)
+            names.append((a, b))
+    if len(alphas) >= 3:
+        alphas, betas = np.array(alphas), np.array(betas)
+        na, nb = alphas / np.linalg.norm(alphas, axis=1, keepdims=True), betas / np.linalg.norm(betas, axis=1,
+                                                                                                   keepdims=True)
+        best, best_count = None, 0
+        cand = list(itertools.combinations(range(len(alphas)), 2))
+        if len(cand) > 300:
+            cand = [cand[i] for i in rng.choice(len(cand), 300, replace=False)]
+        for i, j in cand:
+            if np.linalg.norm(np.cross(na[i], na[j])) < np.sin(np.radians(10)):
+                continue  # parallel axes do not fix a rotation
+            R_X, _ = hand_eye_rotation(alphas[[i, j]], betas[[i, j]])
+            err = np.degrees(np.linalg.norm(alphas - betas @ R_X.T, axis=1))
+            count = int((err < opt.rotation_tol_deg).sum())
+            if count > best_count:
+                best, best_count = R_X, count
+        if best is not None:
+            err = np.degrees(np.linalg.norm(alphas - betas @ best.T, axis=1))
+            inl = err < opt.rotation_tol_deg
+            R_X, res = hand_eye_rotation(alphas[inl], betas[inl])
+            err = np.degrees(np.linalg.norm(alphas - betas @ R_X.T, axis=1))
+            hand_eye["rotation"] = R_X.tolist()
+            hand_eye["axis_residual_deg"] = res
+            for (a, b), e in zip(names, err):
+                if e > opt.rotation_tol_deg:
+                    info["rotation_rejected"].append(f"{a}-{b} ({e:.1f} deg)")
+                    kept.pop((a, b))
+            _translation_check(kept, base_T_ee, R_X, opt, info, hand_eye, rng)
+    return kept
+
+
+def _translation_check(kept: dict, base_T_ee: dict, R_X, opt: PairwiseOptions, info: dict, hand_eye: dict, rng):
+    """Drop pairs whose translation direction disagrees with the robot's motion.
+
+    With the rough hand-eye rotation R_X, AX = XB gives for each pair
+    ``(R_A - I) t_X - lambda_e R_X t_e = -t_A`` (t_e: the pair's unit translation of B, lambda_e
+    its unknown length). A RANSAC over triples of pairs finds t_X; a pair is an outlier when the
+    direction it measures is more than ``translation_tol_deg`` from the one the robot and t_X
+    predict. Pure translations need no t_X: their direction is R_X^T t_A."""
+    keys = list(kept)
+    if len(keys) < 4:
+        return
+    RA, tA, tB = [], [], []
+    for a, b in keys:
+        A = base_T_ee[split_view_id(a)[1]].between(base_T_ee[split_view_id(b)[1]])
+        g = kept[(a, b)]
+        RA.append(A.rotation().matrix())
+        tA.append(A.translation())
+        tB.append(R_X @ (-g.R.T @ g.t))  # B = cam_a^-1 cam_b: translation -R^T t, in ee axes
+    RA, tA, tB = np.array(RA), np.array(tA), np.array(tB)
+    M = RA - np.eye(3)
+
+    def directions_error(t_X):
+        pred = np.einsum("nij,j->ni", M, t_X) + tA
+        norm = np.linalg.norm(pred, axis=1)
+        cos = (pred * tB).sum(1) / np.maximum(norm, 1e-12)
+        return np.degrees(np.arccos(np.clip(cos, -1, 1))), norm
+
+    def fit(idx):
+        n = len(idx)
+        A = np.zeros((3 * n, 3 + n))
+        for k, i in enumerate(idx):
+            A[3 * k:3 * k + 3, :3] = M[i]
+            A[3 * k:3 * k + 3, 3 + k] = -tB[i]
+        sol, *_ = np.linalg.lstsq(A, -tA[idx].ravel(), rcond=None)
+        return sol[:3]
+
+    rotating = np.flatnonzero(np.linalg.norm(M, axis=(1, 2)) > np.radians(3))
+    if len(rotating) < 3:
+        return
+    best, best_count = None, -1
+    for _ in range(200):
+        idx = rng.choice(rotating, 3, replace=False)
+        t_X = fit(idx)
+        err, _ = directions_error(t_X)
+        count = int((err < opt.translation_tol_deg).sum())
+        if count > best_count:
+            best, best_count = t_X, count
+    err, _ = directions_error(best)
+    inl = np.flatnonzero(err < opt.translation_tol_deg)
+    if len(inl) >= 3:
+        err, _ = directions_error(fit(inl))
+    hand_eye["translation"] = best.tolist()
+    for (a, b), e in zip(keys, err):
+        if e > opt.translation_tol_deg:
+            info["translation_rejected"].append(f"{a}-{b} ({e:.1f} deg)")
+            kept.pop((a, b))
+
+
+def rescue_pairs(ds, feats: dict, candidates, kept: dict, robot_info: dict, opt: PairwiseOptions, progress=True,
+                 workers=2) -> dict:
+    """Pairs that failed or disagreed with the robot, tried again with robot-guided matching.
+
+    For views with fewer than ``opt.rescue_below`` usable pairs: the rough hand-eye
+    (:func:`robot_consistent`) and the flange motion predict the pair's epipolar geometry;
+    putative matches are searched within ``opt.rescue_band_deg`` of it (a repeated texture such
+    as a chessboard has too many look-alikes in the whole image for the ratio test), then the
+    pose is estimated from those matches alone, as for any pair, and must pass the same robot
+    checks afterwards. Returns {pair: geometry} of the pairs that gave a geometry."""
+    X = {c: gtsam.Pose3(gtsam.Rot3(np.array(he["rotation"])), np.array(he["translation"]))
+         for c, he in robot_info["hand_eye"].items() if "rotation" in he and "translation" in he}
+    count = {v: 0 for v in feats}
+    for a, b in kept:
+        count[a] += 1
+        count[b] += 1
+    cam = lambda v: split_view_id(v)[0]  # noqa: E731
+    todo = [(a, b) for a, b in candidates if (a, b) not in kept and min(count[a], count[b]) < opt.rescue_below
+            and cam(a) == cam(b) and cam(a) in X]
+    if not todo:
+        return {}
+    K = {v: ds.cameras[split_view_id(v)[0]].K for v in feats}
+
+    def one(ab):
+        a, b = ab
+        A = ds.base_T_ee[split_view_id(a)[1]].between(ds.base_T_ee[split_view_id(b)[1]])
+        B = X[cam(a)].inverse().compose(A).compose(X[cam(a)])  # a_T_b, predicted
+        R = B.rotation().matrix().T
+        t = -R @ B.translation()
+        if np.linalg.norm(t) < 1e-6:
+            return ab, None
+        E = _skew(t / np.linalg.norm(t)) @ R
+        px = 0.5 * (K[a][0, 0] + K[b][0, 0]) * np.tan(np.radians(opt.rescue_band_deg))
+        return ab, two_view_geometry(feats[a], feats[b], K[a], K[b], opt, a, b, prior_E=E, prior_px=px)
+
+    out = {}
+    with ThreadPoolExecutor(max(1, workers)) as pool:
+        for ab, g in tqdm(pool.map(one, todo), total=len(todo), desc="pairwise: robot-guided matching",
+                          disable=None if progress else True, leave=False):
+            if g is not None:
+                out[ab] = g
+    log.info("pairwise: robot-guided matching gave %d of %d pair(s) of weakly connected views", len(out), len(todo))
+    return out
+
+
+# ----------------------------------------------------------------------------- aggregation
+
+
+def _weighted_median(x, w):
+    order = np.argsort(x)
+    cw = np.cumsum(w[order])
+    return x[order][np.searchsorted(cw, 0.5 * cw[-1])]
+
+
+def _angle_conf(angle):
+    return np.clip(angle / np.radians(FULL_CONF_ANGLE_DEG), 0.05, 1.0)
+
+
+def view_depths(vid, feats: Features, geoms: dict, opt: PairwiseOptions):
+    """Per-keypoint depth of one view from its pairs, every pair brought to one unit.
+
+    Returns (kp ids (M,), depth (M,), conf (M,), {pair: log scale}) — the scale that maps the
+    pair's unit to the view's — or None when no pair gives depth."""
+    entries = []  # (pair, kp ids, depth, angle-conf)
+    for ab, g in geoms.items():
+        if vid not in ab or np.degrees(np.median(g.angle)) < opt.min_pair_angle_deg:
+            continue
+        idx, d = (g.ia, g.depth_a) if ab[0] == vid else (g.ib, g.depth_b)
+        entries.append((ab, feats.kp_id[idx], d, _angle_conf(g.angle)))
+    if not entries:
+        return None
+    # Reference: of the three pairs with the most (angle-weighted) triangulated points, the one
+    # the most other pairs agree with (a wrong geometry with many points must not set the unit).
+    order = sorted(range(len(entries)), key=lambda k: -entries[k][3].sum())
+    n_kp = int(feats.kp_id.max()) + 1 if len(feats.kp_id) else 0
+    best = None
+    for ref in order[:3]:
+        scales = _align(vid, entries, ref, order, n_kp, opt)
+        weight = sum(entries[k][3].sum() for k in range(len(entries)) if entries[k][0] in scales)
+        if best is None or weight > best[0]:
+            best = (weight, scales)
+    scales = best[1]
+    # Eq. 1 on the keypoints, after dropping entries far from each keypoint's weighted median.
+    used = [k for k in range(len(entries)) if entries[k][0] in scales]
+    ids_all = np.unique(np.concatenate([entries[k][1] for k in used]))
+    P, M = len(used), len(ids_all)
+    D = np.zeros((P, 1, M))
+    C = np.zeros((P, 1, M))
+    for p, k in enumerate(used):
+        ab, ids, d, c = entries[k]
+        j = np.searchsorted(ids_all, ids)
+        o = np.argsort(c)  # the same keypoint twice in one pair (two orientations): the better one wins
+        D[p, 0, j[o]] = d[o] * np.exp(scales[ab])
+        C[p, 0, j[o]] = c[o]
+    logD = np.log(np.where(D[:, 0] > 0, D[:, 0], 1.0))
+    med = _weighted_median_columns(logD, C[:, 0])
+    C[:, 0] = np.where(np.abs(logD - med[None]) > opt.max_depth_spread, 0.0, C[:, 0])
+    depth, conf = aggregate_pointmaps(D, C)
+    ok = depth[0] > 0
+    return ids_all[ok], depth[0][ok].astype(np.float64), conf[0][ok].astype(np.float64), scales
+
+
+def _align(vid, entries, ref, order, n_kp, opt):
+    """{pair: log scale into ref's unit} of the pairs that agree with ``ref``, greedily: the pair
+    sharing most keypoints with those already aligned goes next."""
+    acc_w = np.zeros(n_kp)
+    acc_logd = np.zeros(n_kp)
+    scales = {}
+
+    def add(k, log_s):
+        ab, ids, d, c = entries[k]
+        np.add.at(acc_w, ids, c)
+        np.add.at(acc_logd, ids, c * (np.log(d) + log_s))
+        scales[ab] = log_s
+
+    add(ref, 0.0)
+    pending = set(order) - {ref}
+    while pending:
+        shared = {k: int((acc_w[entries[k][1]] > 0).sum()) for k in pending}
+        k = max(pending, key=lambda j: (shared[j], -order.index(j)))
+        if shared[k] < opt.min_shared:
+            break  # nothing left overlaps the aligned pairs
+        pending.discard(k)
+        ab, ids, d, c = entries[k]
+        m = acc_w[ids] > 0
+        diff = acc_logd[ids[m]] / acc_w[ids[m]] - np.log(d[m])
+        w = c[m] * np.minimum(acc_w[ids[m]], 1.0)
+        log_s = _weighted_median(diff, w)
+        mad = 1.4826 * _weighted_median(np.abs(diff - log_s), w)
+        if mad > opt.max_scale_mad:
+            log.debug("%s: pair %s-%s gives no depth (scale ratios scatter by %.1f %%)", vid, *ab, 100 * mad)
+            continue
+        add(k, log_s)
+    return scales
+
+
+def _weighted_median_columns(x, w):
+    """Weighted median of each column of x (P, M) under weights w (P, M); zero weight = absent."""
+    key = np.where(w > 0, x, np.inf)
+    order = np.argsort(key, axis=0)
+    xs, ws = np.take_along_axis(key, order, 0), np.take_along_axis(w, order, 0)
+    cw = np.cumsum(ws, axis=0)
+    k = np.argmax(cw >= 0.5 * cw[-1:], axis=0)
+    return xs[k, np.arange(x.shape[1])]
+
+
+def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions):
+    """(views {vid: ViewPrediction}, pairs [PairMatches], info) from verified pair geometries."""
+    views, info = {}, {"views": {}, "unusable": []}
+    for vid in sorted(feats):
+        cam = ds.cameras[split_view_id(vid)[0]]
+        res = view_depths(vid, feats[vid], geoms, opt)
+        if res is None or len(res[0]) < opt.min_view_points:
+            n = 0 if res is None else len(res[0])
+            info["unusable"].append(vid)
+            n_pairs = sum(vid in ab for ab in geoms)
+            log.warning("view %s: no usable two-view geometry (%d verified pair(s), %d triangulated points); "
+                        "left out of the predictions, the others go on", vid, n_pairs, n)
+            continue
+        ids, depth_kp, conf_kp, scales = res
+        # one feature per kp id: its (full-resolution) location
+        first = np.full(int(feats[vid].kp_id.max()) + 1, -1)
+        first[feats[vid].kp_id[::-1]] = np.arange(len(feats[vid].kp_id))[::-1]
+        uv = feats[vid].uv[first[ids]]
+        depth = np.zeros((cam.height, cam.width), np.float32)
+        conf = np.zeros_like(depth)
+        x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = (x0 >= 0) & (y0 >= 0) & (x0 < cam.width - 1) & (y0 < cam.height - 1)
+        order = np.argsort(conf_kp[ok])  # where splats overlap, the most confident one wins
+        for dx in (0, 1):
+            for dy in (0, 1):
+                depth[y0[ok][order] + dy, x0[ok][order] + dx] = depth_kp[ok][order]
+                conf[y0[ok][order] + dy, x0[ok][order] + dx] = conf_kp[ok][order]
+        views[vid] = ViewPrediction(depth, conf, cam.K)
+        info["views"][vid] = {"points": int(ok.sum()), "pairs": len(scales)}
+    # Matches: every verified pair's, where the depths written at both ends agree with the pair's
+    # own triangulation up to one scale per end (a match along a repeated texture's epipolar
+    # line, or a splat a neighbouring keypoint overwrote, does not); scored by how many do.
+    cand, scores = {}, {}
+    for (a, b), g in geoms.items():
+        if a not in views or b not in views:
+            continue
+        uv_a, uv_b = feats[a].uv[g.ia], feats[b].uv[g.ib]
+        d_a, ok_a = sample_bilinear(views[a].depth, uv_a)
+        d_b, ok_b = sample_bilinear(views[b].depth, uv_b)
+        ok = ok_a & ok_b
+        if ok.sum() < 20:
+            continue
+        with np.errstate(divide="ignore", invalid="ignore"):
+            la, lb = np.log(d_a) - np.log(g.depth_a), np.log(d_b) - np.log(g.depth_b)
+        keep = ok.copy()
+        keep[ok] = ((np.abs(la[ok] - np.median(la[ok])) < opt.max_depth_spread)
+                    & (np.abs(lb[ok] - np.median(lb[ok])) < opt.max_depth_spread))
+        if keep.sum() >= 20:
+            cand[(a, b)] = PairMatches(a, b, uv_a[keep], uv_b[keep], g.conf[keep])
+            scores[(a, b)] = int(keep.sum())
+    edges = covisibility_edges(scores, sorted(views), opt.neighbours)
+    pairs = [cand[e] if e in cand else PairMatches(e[0], e[1], cand[e[::-1]].uv_b, cand[e[::-1]].uv_a,
+                                                   cand[e[::-1]].conf) for e in edges]
+    for vid in sorted(views):
+        if not any(vid in (p.view_a, p.view_b) for p in pairs):
+            info["unusable"].append(vid)
+            log.warning("view %s: its depth is shared with no other view; left out of the predictions", vid)
+    used = {v for p in pairs for v in (p.view_a, p.view_b)}
+    views = {v: p for v, p in views.items() if v in used}
+    return views, pairs, info
+
+
+# ----------------------------------------------------------------------------- the frontend
+
+
+def _view_ids(ds, frames=None):
+    frames = ds.frames if frames is None else [f for f in ds.frames if f in set(frames)]
+    out = [view_id(c.name, f) for c in ds.cameras.values() for f in frames if ds.image_path(c.name, f)]
+    if not out:
+        raise InputError(ds.root / "images", "no images for the frames in robot_poses.csv")
+    return out
+
+
+def pairwise_predictions(ds, frames=None, opt: PairwiseOptions | None = None, cache_dir=None, progress=True,
+                         workers=2, name="pairwise") -> Predictions:
+    """Predictions of the given frames (all if None), in memory."""
+    opt = opt or PairwiseOptions()
+    t0 = time.perf_counter()
+    vids = _view_ids(ds, frames)
+    feats = features_for(ds, vids, opt, cache_dir, progress, workers)
+    t1 = time.perf_counter()
+    candidates = [(a, b) for a, b in itertools.combinations(vids, 2)]
+    geoms = pair_geometries(ds, feats, candidates, opt, cache_dir, progress, workers)
+    t2 = time.perf_counter()
+    verified = {ab: g for ab, g in geoms.items() if g is not None}
+    kept, robot_info = robot_consistent(verified, ds.base_T_ee, opt)
+    rescued = rescue_pairs(ds, feats, candidates, kept, robot_info, opt, progress, workers) if opt.rescue else {}
+    if rescued:
+        kept, robot_info = robot_consistent({**verified, **rescued}, ds.base_T_ee, opt)
+    views, pairs, agg_info = aggregate(ds, feats, kept, opt)
+    if not pairs:
+        raise SolveError(f"pairwise: no two of the {len(vids)} images share enough verified, triangulated "
+                         "matches (too little texture or overlap)")
+    t3 = time.perf_counter()
+    noise = [g.stats["median_error_px"] for g in kept.values()]
+    info = {"source": "calib3r-graph pairwise (OpenCV RootSIFT, essential-matrix RANSAC per pair, triangulation, "
+                      "per-view scale alignment and eq. 1 aggregation)",
+            "metric_depth": False,
+            # median Hartley-Sturm correction ~ 0.67 sigma of the larger of two 2D offsets; floor 0.5 px
+            "match_noise_px": float(max(0.5, 1.5 * np.median(noise))) if noise else 1.0,
+            "images": len(vids), "views": len(views), "pairs": len(pairs), "verified_pairs": len(verified),
+            "robot_consistent_pairs": len(kept), "robot_guided_pairs": len(set(rescued) & set(kept)),
+            "unusable_views": agg_info["unusable"],
+            "rejected_by_robot_motion": robot_info["angle_rejected"] + robot_info["rotation_rejected"]
+            + robot_info["translation_rejected"],
+            "seconds": {"features": t1 - t0, "pairs": t2 - t1, "aggregation": t3 - t2},
+            "options": asdict(opt)}
+    log.info("pairwise frontend: %d/%d views, %d pairs (%d verified, %d robot-consistent), %.1f s", len(views),
+             len(vids), len(pairs), len(verified), len(kept), t3 - t0)
+    return Predictions(name, info, views, pairs)
+
+
+def predict_pairwise(ds, name="pairwise", progress=True, cache_dir=None, workers=2, **kw) -> str:
+    """Run the frontend on the whole dataset and write ``predictions/<name>/``."""
+    opt = PairwiseOptions(**kw)
+    preds = pairwise_predictions(ds, None, opt, cache_dir, progress, workers, name)
+    save_predictions(ds.root, name, preds.views, preds.pairs, preds.info)
+    return name

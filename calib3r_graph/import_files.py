@@ -1,0 +1,192 @@
+"""``import files``: a folder of images per camera and a robot pose file -> calib3r-dataset/1.
+
+Frames are matched to poses by the number in the image file names (and in the pose file's
+frame column or per-frame file names), or else by sorted order; any mismatch is an error.
+With a board in the images, the pose direction (base_T_ee or ee_T_base) and unit (m or mm)
+are checked against the board's visual motion, as ``import rwhe`` does, and the convention the
+images support is used and reported. Intrinsics come from a file
+(calib3r_graph.io.intrinsics_files) or are calibrated from the board.
+"""
+
+import logging
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from calib3r_graph import boards
+from calib3r_graph.dataset import Camera, write_dataset_yaml, write_robot_poses
+from calib3r_graph.errors import InputError
+from calib3r_graph.importers import (apply_convention, board_poses, calibrate_intrinsics, choose_convention,
+                                     convention_lines, detect_all, refine_intrinsics_with_robot)
+from calib3r_graph.io.intrinsics_files import read_intrinsics
+from calib3r_graph.io.pose_files import expand, frame_number, parse_format, read_poses
+from calib3r_graph.output import staged_directory
+
+log = logging.getLogger(__name__)
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+KEEP_SUFFIXES = (".png", ".jpg", ".jpeg")  # the dataset reads these as they are
+
+
+def _numbered(items, number_of):
+    """The items' numbers if every item has one and none repeats, else None."""
+    nums = [number_of(x) for x in items]
+    return nums if all(n is not None for n in nums) and len(set(nums)) == len(nums) else None
+
+
+def match_frames(image_lists: list, records: list) -> tuple:
+    """``(frames, {frame: pose record}, [{frame: image path}] per camera, how)``.
+
+    By number where the poses and the images are numbered, else by sorted order."""
+    pose_nums = _numbered(records, lambda r: r.number)
+    cams_nums = [_numbered(files, frame_number) for files in image_lists]
+    if pose_nums is not None and all(n is not None for n in cams_nums):
+        poses = dict(zip(pose_nums, records))
+        out = []
+        for files, nums in zip(image_lists, cams_nums):
+            by_num = dict(zip(nums, files))
+            missing, extra = sorted(set(pose_nums) - set(nums)), sorted(set(nums) - set(pose_nums))
+            if missing or extra:
+                folder = files[0].parent
+                what = (f"frame(s) {_few(extra)} have no pose" if extra else "") + \
+                    ("; " if missing and extra else "") + (f"pose(s) {_few(missing)} have no image" if missing else "")
+                raise InputError(folder, f"{len(files)} images but {len(records)} poses, matched by the number in "
+                                         f"the file names: {what}")
+            out.append({f"{n:04d}": by_num[n] for n in sorted(pose_nums)})
+        return [f"{n:04d}" for n in sorted(pose_nums)], {f"{n:04d}": poses[n] for n in pose_nums}, out, "by number"
+    out = []
+    for files, nums in zip(image_lists, cams_nums):
+        if len(files) != len(records):
+            raise InputError(files[0].parent, f"{len(files)} images but {len(records)} poses (matched in sorted order, "
+                                              "since not both are numbered): the counts must agree")
+        ordered = [f for _, f in sorted(zip(nums, files))] if nums is not None else files
+        out.append({f"{i:04d}": f for i, f in enumerate(ordered)})
+    if pose_nums is not None:
+        records = [r for _, r in sorted(zip(pose_nums, records), key=lambda x: x[0])]
+    frames = [f"{i:04d}" for i in range(len(records))]
+    return frames, dict(zip(frames, records)), out, "in sorted order"
+
+
+def _few(nums, k=5) -> str:
+    return ", ".join(str(n) for n in nums[:k]) + (f" and {len(nums) - k} more" if len(nums) > k else "")
+
+
+def _image_size(path: Path) -> tuple:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(path, "unreadable image")
+    return img.shape[1], img.shape[0]
+
+
+def _cameras_intrinsics(intrinsics_files: list, n_cams: int, sizes: list) -> list:
+    found = [i for f in intrinsics_files for i in read_intrinsics(f)]
+    if len(found) != n_cams:
+        raise InputError("--intrinsics", f"{len(found)} camera(s) in the intrinsics file(s) but {n_cams} --images "
+                                         "folder(s): give one per camera, in the same order")
+    for intr, size in zip(found, sizes):
+        if intr.width is not None and (intr.width, intr.height) != size:
+            raise InputError(intr.source, f"intrinsics are for {intr.width}x{intr.height} images but the images are "
+                                          f"{size[0]}x{size[1]}")
+    return found
+
+
+def import_files(dst, images: list, poses: str, pose_format: str, unit: str | None = None,
+                 intrinsics: list | None = None, board: str | None = None, progress: bool = True) -> str:
+    """Write a dataset to ``dst``; returns the report."""
+    dst = Path(dst)
+    fmt = parse_format(pose_format)
+    if not intrinsics and not board:
+        raise InputError("--intrinsics", "give the cameras' intrinsics (--intrinsics FILE) or a board in the images "
+                                         "to calibrate them from (--board SPEC)")
+    image_lists = []
+    for spec in images:
+        files = expand(spec, IMAGE_SUFFIXES)
+        if not files:
+            raise InputError(spec, f"no images ({', '.join(IMAGE_SUFFIXES)}) in it")
+        image_lists.append(files)
+    records = read_poses(poses, fmt)
+    frames, pose_of, image_of, how = match_frames(image_lists, records)
+    sizes = []
+    for j, files in enumerate(image_of):
+        size = _image_size(next(iter(files.values())))
+        sizes.append(size)
+    given = _cameras_intrinsics(intrinsics, len(images), sizes) if intrinsics else None
+    mats = {f: pose_of[f].matrix for f in frames}
+    lines = [f"imported {len(frames)} frames x {len(images)} camera(s) into {dst}, images matched to poses {how}"]
+
+    board_obj, pattern, cams, convention = None, None, [], None
+    if board:
+        board_obj = boards.parse_board(board)
+        if board_obj.size is None:
+            raise InputError("--board", f"give the square size in metres too, e.g. --board "
+                                        f"{board_obj.cols}x{board_obj.rows}:0.03")
+    detections = []
+    for j, files in enumerate(image_of):
+        dets, board_used, K, dist, rms, cam_T_board = {}, board_obj, None, None, None, {}
+        if board_obj is not None:
+            try:
+                dets, board_used, _ = detect_all(list(files.items()), board_obj, progress)
+            except InputError:
+                if given is None:
+                    raise
+                dets = {}
+        if given is not None:
+            K, dist = given[j].K, given[j].dist
+            cam_T_board = board_poses(dets, board_used, K, dist) if dets else {}
+            lines.append(f"  cam{j}: intrinsics from {given[j].source}")
+        else:
+            K, dist, rms, cam_T_board = calibrate_intrinsics(dets, board_used, sizes[j])
+            lines.append(f"  cam{j}: intrinsics from the {board_used.describe()} in {len(dets)} images: "
+                         f"fx {K[0, 0]:.1f} fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}, RMS {rms:.3f} px")
+        if board_used is not None and dets:
+            board_obj = board_used  # the dictionary found, or the checkerboard's corrected size
+        detections.append((dets, cam_T_board, K, dist))
+
+    stated_unit = unit or "m"
+    ref = next((j for j, (d, cb, _, _) in enumerate(detections) if len(cb) >= 3), None)
+    if ref is not None:
+        (unit_used, direction), _, residuals = choose_convention({f: mats[f] for f in detections[ref][1]},
+                                                                 detections[ref][1])
+        lines += convention_lines(direction, unit_used, residuals)
+        convention = f"{direction}, {unit_used}"
+        if direction.startswith("inverted") or (unit is not None and unit_used != unit):
+            msg = (f"the poses fit the images as '{convention}', not as base_T_ee in "
+                   f"{stated_unit}{'' if unit else ' (the default)'}: using '{convention}'")
+            log.warning(msg)
+            lines.append(f"  ! {msg}")
+    else:
+        unit_used, direction = stated_unit, "as given (base_T_ee)"
+        convention = f"{direction}, {unit_used} (not checked: no board seen in 3 images)"
+        lines.append(f"  robot poses: taken as base_T_ee in {unit_used}; not checked against the images "
+                     "(give --board to check direction and unit)")
+    base_T_ee = {f: apply_convention(M, unit_used, direction) for f, M in mats.items()}
+    if board_obj is not None:
+        pattern = boards.to_pattern(board_obj)
+    for j, (dets, cam_T_board, K, dist) in enumerate(detections):
+        if given is None:
+            K_board = K
+            K, dist = refine_intrinsics_with_robot(K, dist, sizes[j], dets, cam_T_board, base_T_ee, pattern)
+            lines.append(f"  cam{j}: refined with the robot's metric motion (pattern-ba): fx {K[0, 0]:.1f} "
+                         f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f} (board alone: fx {K_board[0, 0]:.1f})")
+        cams.append(Camera(f"cam{j}", "OPENCV", int(sizes[j][0]), int(sizes[j][1]),
+                           tuple(float(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.ravel(dist)[:4]))))
+    _write(dst, cams, image_of, base_T_ee, pattern,
+           {"source": {"format": "files", "images": [str(i) for i in images], "poses": str(poses),
+                       "pose_format": fmt.name, "pose_convention": convention, "matched": how}})
+    return "\n".join(lines)
+
+
+def _write(dst: Path, cams, image_of, base_T_ee, pattern, extra):
+    with staged_directory(dst) as stage:
+        for cam, files in zip(cams, image_of):
+            folder = stage / "images" / cam.name
+            folder.mkdir(parents=True)
+            for f, p in files.items():
+                suffix = p.suffix.lower()
+                if suffix in KEEP_SUFFIXES:
+                    shutil.copyfile(p, folder / f"{f}{'.jpg' if suffix == '.jpeg' else suffix}")
+                elif not cv2.imwrite(str(folder / f"{f}.png"), cv2.imread(str(p), cv2.IMREAD_UNCHANGED)):
+                    raise InputError(p, "cannot be converted to PNG")
+        write_robot_poses(stage / "robot_poses.csv", base_T_ee, unit="m")
+        write_dataset_yaml(stage, cams, unit="m", pattern=pattern, extra=extra)
