@@ -59,6 +59,7 @@ PATTERN = ("park", "pattern-ba")  # measured against their own full-recording re
 LABELS = {"pairwise": "calib3r-graph, pairwise frontend", "colmap": "calib3r-graph, colmap frontend",
           "jcr-predictions": "jcr-predictions (pairwise)", "jcr-colmap": "jcr-colmap",
           "park": "park (board; vs its own full result)", "pattern-ba": "pattern-ba (board; vs its own full result)"}
+SOLVER_NOISE = {}  # --noise overrides of the solver's NoiseOptions (for experiments; default: none)
 FAILURES = (Calib3rError, RuntimeError, ValueError, np.linalg.LinAlgError)
 
 
@@ -103,7 +104,7 @@ def run_pairwise(ds, frames, opt, cache):
     """Ours with the pairwise frontend, and jcr-predictions on the same predictions."""
     sub = subset_dataset(ds, frames) if frames is not None else ds
     preds = pairwise_predictions(sub, None, opt, cache, progress=False)
-    noise = NoiseOptions(pixel_sigma_px=preds.info["match_noise_px"])
+    noise = NoiseOptions(pixel_sigma_px=preds.info["match_noise_px"], **SOLVER_NOISE)
     sol = solve(sub, preds, SolveOptions(noise=noise, progress=False))
     out = {"cameras": _cams(sol.ee_T_cam), "views_used": sol.stats["views_used"],
            "unusable_views": preds.info["unusable_views"]}
@@ -131,7 +132,7 @@ def _solve_colmap(sub, root):
     jcr = _attempt(lambda: {"cameras": _cams(two_stage_hand_eye({v: gtsam.Pose3(T) for v, T in traj.items()},
                                                                sub.base_T_ee))})
     sol = _attempt(lambda: {"cameras": _cams(solve(sub, preds, SolveOptions(
-        noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0))),
+        noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0)), **SOLVER_NOISE),
         progress=False)).ee_T_cam), "registered": preds.info.get("registered")})
     return sol, jcr
 
@@ -155,7 +156,8 @@ def bench_recording(name, args, opt):
     # the runs' key: the options and the frontend's and solver's code (an edit re-runs the subsets;
     # features and pair geometries have their own keys in the frontend's cache)
     code = b"".join((ROOT / f).read_bytes() for f in ("calib3r_graph/frontends/pairwise.py", "calib3r_graph/solve.py"))
-    digest = hashlib.sha1(json.dumps(dataclasses.asdict(opt), sort_keys=True).encode() + code).hexdigest()[:10]
+    digest = hashlib.sha1(json.dumps([dataclasses.asdict(opt), SOLVER_NOISE], sort_keys=True).encode()
+                          + code).hexdigest()[:10]
     log.info("%s: %d frames", name, len(ds.frames))
 
     def pw(frames):
@@ -268,7 +270,7 @@ def plot(name, res, views, path):
                 patch.set_facecolor(colours[m])
                 patch.set_alpha(0.5)
         rates = [summarise(res["runs"], m, n)["solved"] / summarise(res["runs"], m, n)["subsets"] * 100 for n in views]
-        ax[2].plot(views, rates, "o-", color=colours[m], label=LABELS[m], lw=2.5 if m == "pairwise" else 1)
+        ax[2].plot(x, rates, "os^vDx"[k] + "-", color=colours[m], label=LABELS[m], lw=2.5 if m == "pairwise" else 1)
     for a, lab, goal in ((ax[0], "e_t (mm) vs the full recording", (3, 5)),
                          (ax[1], "e_θ (deg) vs the full recording", (0.2, 0.3))):
         a.set_yscale("log")
@@ -330,6 +332,8 @@ def main():
     ap.add_argument("--work", default="/work/data/pairwise_work")
     ap.add_argument("--cache", default="/work/data/pairwise_cache")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap.add_argument("--noise", action="append", default=[], metavar="OPTION=VALUE",
+                    help="override a solver NoiseOptions field for the prediction-based solves (experiments)")
     ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                     help="override a PairwiseOptions field (repeatable), e.g. --set rotation_tol_deg=0.5")
     args = ap.parse_args()
@@ -345,6 +349,9 @@ def main():
             raise SystemExit(f"--set: unknown option '{k}' ({', '.join(fields)})")
         overrides[k] = {bool: lambda x: x.lower() in ("1", "true", "yes"), int: int}.get(fields[k], float)(v)
     opt = PairwiseOptions(**overrides)
+    for item in args.noise:
+        k, _, v = item.partition("=")
+        SOLVER_NOISE[k] = float(v)
     results = {}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -171,10 +171,9 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
         if c in sol.covariance_model:
             mod = uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
             sysm = sol.systematic[c]
-            lines.append(f"        of which noise model t = [{mod['x_mm']:.2f} {mod['y_mm']:.2f} {mod['z_mm']:.2f}] mm; "
-                         f"systematic: robot error field {sysm.gradient_mm_per_m:.2f} mm/m, "
-                         f"{sysm.gradient_deg_per_m:.3f} deg/m across the workspace (and per degree of "
-                         f"orientation, solver.systematic)")
+            lines.append(f"        of which noise model t = [{mod['x_mm']:.2f} {mod['y_mm']:.2f} {mod['z_mm']:.2f}] mm, "
+                         f"r = [{mod['rx_deg']:.3f} {mod['ry_deg']:.3f} {mod['rz_deg']:.3f}] deg; the rest: robot "
+                         f"error field {sysm.gradient_mm_per_m:.2f} mm/m, {sysm.gradient_deg_per_m:.3f} deg/m")
     for c, X in sol.ee_T_cam.items():
         corr = uncertainty_report(X, sol.covariance[c])["strongest_correlations"][0]
         lines.append(f"  {c}: strongest correlation {corr['axes'][0]}-{corr['axes'][1]} {corr['rho']:+.2f}")

@@ -153,16 +153,11 @@ def board_rig(root, spec, partial: bool):
     return ee_T_cam
 
 
-CIRCLES_PATTERN_BA = pytest.mark.xfail(raises=KeyError, strict=False,
-                                       reason="pattern_ba's log line reads pattern['square_size'], which a circle "
-                                              "grid's block calls 'spacing'")
-
 
 @pytest.mark.slow
 @pytest.mark.parametrize("spec,methods", [
     ("charuco:9x6:0.03:0.022", ["park", "pattern-ba"]),  # dictionary found by pattern.detect
-    ("circles:7x5:0.035", ["tsai", "park"]),
-    pytest.param("circles:7x5:0.035", ["pattern-ba"], marks=CIRCLES_PATTERN_BA),
+    ("circles:7x5:0.035", ["tsai", "park", "pattern-ba"]),
 ])
 def test_pattern_methods_on_other_boards(tmp_path, spec, methods):
     """compare's OpenCV solvers and pattern-ba, through dataset.yaml's pattern block."""
