@@ -13,18 +13,7 @@ import pytest
 from calib3r_graph.cli import main
 from calib3r_graph.dataset import load_dataset, read_robot_poses, write_robot_poses
 from tests.conftest import REPO
-
-
-def expect_one_line_error(args, capsys, code, *fragments):
-    got = main(args)
-    err = capsys.readouterr().err
-    lines = [l for l in err.splitlines() if l.startswith("calib3r-graph:")]
-    assert got == code, err
-    assert "Traceback" not in err
-    assert len(lines) == 1, err
-    for f in fragments:
-        assert f in lines[0], lines[0]
-    return lines[0]
+from tests.test_bad_input import expect_error as expect_one_line_error
 
 
 # --- 4. robot_poses.csv written by Windows tools -------------------------------------------------
