@@ -24,7 +24,7 @@ residual.
 **Propagating it** (:func:`propagate`). The whole field, including the part that looks exactly
 like a scale or a hand-eye change, goes through the solver's own linearised graph: a flange
 perturbation ``xi`` (body frame) changes the robot pose factor's error by ``-Ad(C^-1 E) xi``; the
-solution moves by ``dx = (A^T A)^-1 A^T db`` for each of the 18 field directions, and
+solution moves by ``dx = (A^T A)^-1 A^T db`` for each of the 36 field directions, and
 ``Sigma = sum_k tau_k^2 dx_k dx_k^T``. So its effect on the rotation, on the other cameras of a
 rig and on the scale is included. With white robot noise, as in the simulator, tau is about 0
 and nothing is added.
@@ -163,29 +163,32 @@ def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> di
         offsets[k] = (col, _dim(values, k))
         col += offsets[k][1]
     lin = graph.linearize(values)
-    A, _ = lin.jacobian(ordering)
-    rows, row = [], 0
-    for i in range(lin.size()):
-        rows.append(row)
-        row += lin.at(i).rows()
+    H, _ = lin.hessian(ordering)  # A^T A, without forming the (tall) dense A
     index = {tuple(graph.at(i).keys()): i for i in range(graph.size())}
     C = [values.atPose3(c) for _, c, _ in robot]
     # One field for the arm, over every robot pose's flange configuration (any camera's ee_T_cam).
     p, w = configuration([T.compose(values.atPose3(e).inverse()) for (e, _, _), T in zip(robot, C)])
     Phis = [field_basis(p), field_basis(w)]
-    db = np.zeros((A.shape[0], 36))
-    scales = np.repeat([tau[0, 0], tau[0, 1], tau[1, 0], tau[1, 1]], 9)
+    g = np.zeros((H.shape[0], 36))  # A^T db: only the robot factors' rows of b change
     for n, ((e, c, E), T) in enumerate(zip(robot, C)):
         i = index[(e, c)]
         model = graph.at(i).noiseModel()
         Ad = T.inverse().compose(E).AdjointMap()
         Rt = E.rotation().matrix().T
+        db = np.zeros((6, 36))
         for b, Phi in enumerate(Phis):
             for k in range(9):
                 f = Rt @ Phi[3 * n:3 * n + 3, k]
                 for kind, xi in enumerate((np.r_[np.zeros(3), f], np.r_[f, np.zeros(3)])):  # position, orientation
-                    db[rows[i]:rows[i] + 6, 18 * kind + 9 * b + k] = model.whiten(Ad @ xi)  # b = -whitened error
-    dx = np.linalg.solve(A.T @ A, A.T @ db) * scales
+                    db[:, 18 * kind + 9 * b + k] = model.whiten(Ad @ xi)  # b = -whitened error; de = -Ad xi
+        factor = lin.at(i)
+        A_i, _ = factor.jacobian()
+        col = 0
+        for key in factor.keys():
+            a, d = offsets[key]
+            g[a:a + d] += A_i[:, col:col + d].T @ db
+            col += d
+    dx = np.linalg.solve(H, g) * np.repeat([tau[0, 0], tau[0, 1], tau[1, 0], tau[1, 1]], 9)
     return {k: dx[offsets[k][0]:offsets[k][0] + offsets[k][1]] @ dx[offsets[k][0]:offsets[k][0] + offsets[k][1]].T
             for k in out_keys}
 
