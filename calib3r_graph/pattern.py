@@ -102,7 +102,7 @@ class PatternBAResult:
     corner_sigma_px: float = 0.5  # calibrated corner noise
     robot_noise_factor: float = 1.0  # robot sigma used / nominal
     board_scale: float = 1.0  # estimated square size / nominal
-    board_scale_sigma: float = 0.0  # its marginal sigma (0 when held fixed)
+    board_scale_sigma: float = 0.0  # the used scale's sigma (0 when held fixed)
     chi2: dict = None  # {"corners": chi2, "robot": chi2} of the final solve, with the noise it used
     covariance_model: dict = None  # camera -> 6x6 marginal of the noise model alone (covariance adds the rest)
     board_scale_estimate: dict = None  # the robot's measurement of the scale and how it was combined
