@@ -63,7 +63,6 @@ import hashlib
 import itertools
 import json
 import logging
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -78,6 +77,7 @@ from calib3r_graph.errors import InputError, SolveError
 from calib3r_graph.frontends.common import aggregate_pointmaps, covisibility_edges, load_gray, undistort_maps
 from calib3r_graph.geometry import hand_eye_rotation, rotation_angle_deg
 from calib3r_graph.observations import sample_bilinear
+from calib3r_graph.output import atomic_savez
 from calib3r_graph.predictions import PairMatches, Predictions, ViewPrediction, save_predictions, split_view_id, view_id
 
 log = logging.getLogger(__name__)
@@ -199,17 +199,19 @@ def features_for(ds, views, opt: PairwiseOptions, cache_dir=None, progress=True,
                     return vid, Features(z["uv"], z["desc"].astype(np.float32), z["kp_id"])
         f = extract_features(ds, cam, frame, opt)
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-            np.savez(tmp, uv=f.uv, desc=f.desc.astype(np.float16), kp_id=f.kp_id)
-            os.replace(tmp, path)
+            atomic_savez(path, uv=f.uv, desc=f.desc.astype(np.float16), kp_id=f.kp_id)
         return vid, f
 
+    return _map_with_progress(one, views, "pairwise: features", progress, workers)
+
+
+def _map_with_progress(one, items, desc, progress, workers) -> dict:
+    """dict(one(item) for item in items), on ``workers`` threads, with a progress bar."""
     out = {}
     with ThreadPoolExecutor(max(1, workers)) as pool:
-        for vid, f in tqdm(pool.map(one, views), total=len(views), desc="pairwise: features",
-                           disable=None if progress else True, leave=False):
-            out[vid] = f
+        for key, value in tqdm(pool.map(one, items), total=len(items), desc=desc,
+                               disable=None if progress else True, leave=False):
+            out[key] = value
     return out
 
 
@@ -415,21 +417,13 @@ def pair_geometries(ds, feats: dict, pairs, opt: PairwiseOptions, cache_dir=None
                     return ab, PairGeometry(a, b, *(z[k] for k in _PAIR_ARRAYS), json.loads(str(z["stats"])))
         g = two_view_geometry(feats[a], feats[b], K[a], K[b], opt, a, b)
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
             if g is None:
-                np.savez(tmp, none=np.zeros(0))
+                atomic_savez(path, none=np.zeros(0))
             else:
-                np.savez(tmp, **{k: getattr(g, k) for k in _PAIR_ARRAYS}, stats=json.dumps(g.stats))
-            os.replace(tmp, path)
+                atomic_savez(path, **{k: getattr(g, k) for k in _PAIR_ARRAYS}, stats=json.dumps(g.stats))
         return ab, g
 
-    out = {}
-    with ThreadPoolExecutor(max(1, workers)) as pool:
-        for ab, g in tqdm(pool.map(one, pairs), total=len(pairs), desc="pairwise: two-view geometry",
-                          disable=None if progress else True, leave=False):
-            out[ab] = g
-    return out
+    return _map_with_progress(one, pairs, "pairwise: two-view geometry", progress, workers)
 
 
 # ----------------------------------------------------------------------------- the robot's help
@@ -604,12 +598,8 @@ def rescue_pairs(ds, feats: dict, candidates, kept: dict, robot_info: dict, opt:
         px = 0.5 * (K[a][0, 0] + K[b][0, 0]) * np.tan(np.radians(opt.rescue_band_deg))
         return ab, two_view_geometry(feats[a], feats[b], K[a], K[b], opt, a, b, prior_E=E, prior_px=px)
 
-    out = {}
-    with ThreadPoolExecutor(max(1, workers)) as pool:
-        for ab, g in tqdm(pool.map(one, todo), total=len(todo), desc="pairwise: robot-guided matching",
-                          disable=None if progress else True, leave=False):
-            if g is not None:
-                out[ab] = g
+    out = {ab: g for ab, g in _map_with_progress(one, todo, "pairwise: robot-guided matching", progress,
+                                                   workers).items() if g is not None}
     log.info("pairwise: robot-guided matching gave %d of %d pair(s) of weakly connected views", len(out), len(todo))
     return out
 
