@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from calib3r_graph.dataset import load_dataset, load_ground_truth  # noqa: E402
-from calib3r_graph.evaluate import hand_eye_errors  # noqa: E402
-from calib3r_graph.predictions import load_predictions  # noqa: E402
+from calib3r_graph.evaluation.evaluate import hand_eye_errors  # noqa: E402
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth  # noqa: E402
+from calib3r_graph.io.predictions import load_predictions  # noqa: E402
 from calib3r_graph.simulate import SimOptions, simulate  # noqa: E402
-from calib3r_graph.solve import SolveOptions, solve  # noqa: E402
+from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
 
 CONFIGS = [  # name, simulator options, goal (mm, deg)
     ("1 camera, 25 poses", dict(frames=25), (2.0, 0.15)),

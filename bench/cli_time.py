@@ -23,8 +23,9 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-IMPORTS = ("import calib3r_graph.cli, calib3r_graph.dataset, calib3r_graph.predictions, calib3r_graph.solve, "
-           "calib3r_graph.results\ntry:\n    import calib3r_graph.report\nexcept ImportError:\n    pass")
+IMPORTS = ("import calib3r_graph.cli, calib3r_graph.io.dataset, calib3r_graph.io.predictions, "
+           "calib3r_graph.solver.solve, calib3r_graph.io.results\n"
+           "try:\n    import calib3r_graph.report\nexcept ImportError:\n    pass")
 
 
 class Clock:
@@ -64,12 +65,12 @@ def _in_process(dataset: Path, out: Path) -> dict:
     import numpy as np
 
     from calib3r_graph.cli import main
-    from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.predictions import choose_predictions, load_predictions
-    from calib3r_graph.results import point_cloud
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.io.predictions import choose_predictions, load_predictions
+    from calib3r_graph.io.results import point_cloud
 
     try:
-        from calib3r_graph.results import write_ply
+        from calib3r_graph.io.results import write_ply
     except ImportError:  # before issue 17: Open3D wrote the cloud
         def write_ply(path, points, colors):
             import open3d as o3d
@@ -77,7 +78,7 @@ def _in_process(dataset: Path, out: Path) -> dict:
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
             pcd.colors = o3d.utility.Vector3dVector(colors)
             o3d.io.write_point_cloud(str(path), pcd, write_ascii=False)
-    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.solver.solve import SolveOptions, solve
 
     sink = io.StringIO()
     out_d = {}
@@ -97,8 +98,8 @@ def _in_process(dataset: Path, out: Path) -> dict:
             write_ply(out / "cloud.ply", np.asarray(pcd.points), np.asarray(pcd.colors))
         out_d["cloud"] = (c.wall, c.cpu)
         try:
+            from calib3r_graph.io.results import calibration_json, summary_text
             from calib3r_graph.report import solve_report_writer
-            from calib3r_graph.results import calibration_json, summary_text
         except ImportError:
             out_d["report"] = None
         else:

@@ -20,10 +20,10 @@ import numpy as np
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from calib3r_graph.dataset import load_dataset, load_ground_truth  # noqa: E402
-from calib3r_graph.predictions import load_predictions  # noqa: E402
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth  # noqa: E402
+from calib3r_graph.io.predictions import load_predictions  # noqa: E402
 from calib3r_graph.simulate import SimOptions, simulate  # noqa: E402
-from calib3r_graph.solve import SolveOptions, solve  # noqa: E402
+from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
 
 
 def one_run(seed, frames, cameras):

@@ -21,9 +21,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from calib3r_graph.cli import main  # noqa: E402
-from calib3r_graph.consistency import axis_differences  # noqa: E402
-from calib3r_graph.dataset import ee_T_cam_by_camera  # noqa: E402
+from calib3r_graph.evaluation.consistency import axis_differences  # noqa: E402
 from calib3r_graph.importers import import_recording  # noqa: E402
+from calib3r_graph.io.dataset import ee_T_cam_by_camera  # noqa: E402
 
 # The boards, as each recording's README states them (inner corners); the importer finds the rest.
 BOARDS = {"rwhe_kuka_1": (28, 17), "rwhe_kuka_2": (24, 17)}

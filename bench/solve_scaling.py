@@ -64,11 +64,11 @@ def scene_floor_seconds(preds, observations, sol, repeats=5) -> float:
 
 def run_one(views: int, cameras: int, matches: int) -> dict:
     import factors.compression as comp
-    from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.observations import build_observations
-    from calib3r_graph.predictions import load_predictions
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.io.predictions import load_predictions
     from calib3r_graph.simulate import SimOptions, simulate
-    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.solver.observations import build_observations
+    from calib3r_graph.solver.solve import SolveOptions, solve
 
     callback = {"seconds": 0.0, "calls": 0}
     original = comp.compressed_error

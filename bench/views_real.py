@@ -44,14 +44,14 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from calib3r_graph.compare import random_subsets, run_method, two_stage_hand_eye  # noqa: E402
-from calib3r_graph.dataset import load_dataset, subset_dataset  # noqa: E402
 from calib3r_graph.errors import Calib3rError  # noqa: E402
+from calib3r_graph.evaluation.compare import random_subsets, run_method, two_stage_hand_eye  # noqa: E402
 from calib3r_graph.frontends.pairwise import PairwiseOptions, pairwise_predictions  # noqa: E402
 from calib3r_graph.geometry import pose_error  # noqa: E402
-from calib3r_graph.graph import NoiseOptions  # noqa: E402
-from calib3r_graph.predictions import load_predictions, read_poses_csv  # noqa: E402
-from calib3r_graph.solve import SolveOptions, solve  # noqa: E402
+from calib3r_graph.io.dataset import load_dataset, subset_dataset  # noqa: E402
+from calib3r_graph.io.predictions import load_predictions, read_poses_csv  # noqa: E402
+from calib3r_graph.solver.graph import NoiseOptions  # noqa: E402
+from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
 
 log = logging.getLogger("views_real")
 METHODS = ["pairwise", "jcr-predictions", "colmap", "jcr-colmap", "park", "pattern-ba"]
@@ -155,7 +155,8 @@ def bench_recording(name, args, opt):
     store = Store(cache / "views_real.jsonl")
     # the runs' key: the options and the frontend's and solver's code (an edit re-runs the subsets;
     # features and pair geometries have their own keys in the frontend's cache)
-    code = b"".join((ROOT / f).read_bytes() for f in ("calib3r_graph/frontends/pairwise.py", "calib3r_graph/solve.py"))
+    code = b"".join((ROOT / f).read_bytes()
+                     for f in ("calib3r_graph/frontends/pairwise.py", "calib3r_graph/solver/solve.py"))
     digest = hashlib.sha1(json.dumps([dataclasses.asdict(opt), SOLVER_NOISE], sort_keys=True).encode()
                           + code).hexdigest()[:10]
     log.info("%s: %d frames", name, len(ds.frames))
@@ -180,7 +181,7 @@ def bench_recording(name, args, opt):
     def pattern(m, frames):
         """A board method on a subset, with the board detected once per recording."""
         if not board:
-            from calib3r_graph import pattern as pat
+            from calib3r_graph.evaluation import pattern as pat
 
             board.update({c: pat.detect(ds, c) for c in ds.cameras})
         sub = subset_dataset(ds, frames) if frames else ds

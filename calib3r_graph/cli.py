@@ -24,7 +24,7 @@ log = logging.getLogger("calib3r_graph")
 
 
 def _add_noise_args(p):
-    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.solver.graph import NoiseOptions
 
     d = NoiseOptions()
     g = p.add_argument_group("noise model (physical units)")
@@ -41,7 +41,7 @@ def _add_noise_args(p):
 
 
 def _noise_from_args(args, info: dict):
-    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.solver.graph import NoiseOptions
 
     px = args.pixel_sigma_px
     if px is None:
@@ -52,11 +52,11 @@ def _noise_from_args(args, info: dict):
 
 
 def cmd_solve(args):
-    from calib3r_graph.results import write_results
+    from calib3r_graph.io.results import write_results
 
     ds, preds, opt, sol = _solve_dataset(args)
     if args.jackknife:
-        from calib3r_graph.jackknife import jackknife
+        from calib3r_graph.solver.jackknife import jackknife
 
         sol.stats["jackknife"] = jackknife(ds, preds, opt, sol, progress=not args.quiet)
     out = _out_dir(args)
@@ -101,10 +101,10 @@ def _announce(line: str):
 
 
 def _solve_dataset(args):
-    from calib3r_graph.dataset import load_dataset
     from calib3r_graph.frontends import ensure_predictions
-    from calib3r_graph.predictions import load_predictions
-    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.io.predictions import load_predictions
+    from calib3r_graph.solver.solve import SolveOptions, solve
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
     name = ensure_predictions(ds, args.predictions, progress=not args.quiet, announce=_announce)
@@ -116,11 +116,11 @@ def _solve_dataset(args):
 
 
 def cmd_plan(args):
-    from calib3r_graph.dataset import read_robot_poses
-    from calib3r_graph.output import atomic_write_json
-    from calib3r_graph.plan import largest_sigmas, rank_candidates
+    from calib3r_graph.io.dataset import read_robot_poses
+    from calib3r_graph.io.output import atomic_write_json
+    from calib3r_graph.solver.plan import largest_sigmas, rank_candidates
 
-    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.io.dataset import load_dataset
 
     unit = load_dataset(args.dataset, skip_missing=args.skip_missing).robot_unit
     candidates = read_robot_poses(Path(args.candidates), unit, "the --candidates file")  # fail before solving
@@ -138,8 +138,8 @@ def cmd_plan(args):
 
 
 def cmd_predict(args):
-    from calib3r_graph.dataset import load_dataset
     from calib3r_graph.frontends import run_frontend
+    from calib3r_graph.io.dataset import load_dataset
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
     name = run_frontend(ds, args.frontend, args.name, progress=not args.quiet)
@@ -147,8 +147,8 @@ def cmd_predict(args):
 
 
 def cmd_convert(args):
-    from calib3r_graph.dataset import load_dataset
     from calib3r_graph.frontends.foundation import convert
+    from calib3r_graph.io.dataset import load_dataset
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
     name = convert(args.model, args.file, ds, name=args.name, order=args.order, vggt_mode=args.vggt_mode,
@@ -157,12 +157,12 @@ def cmd_convert(args):
 
 
 def cmd_compare(args):
-    from calib3r_graph import compare as cmp
-    from calib3r_graph.dataset import ee_T_cam_by_camera, load_dataset, load_ground_truth
     from calib3r_graph.errors import SolveError
-    from calib3r_graph.graph import NoiseOptions
-    from calib3r_graph.output import atomic_write_json, atomic_write_text, staged_directory
-    from calib3r_graph.predictions import load_predictions
+    from calib3r_graph.evaluation import compare as cmp
+    from calib3r_graph.io.dataset import ee_T_cam_by_camera, load_dataset, load_ground_truth
+    from calib3r_graph.io.output import atomic_write_json, atomic_write_text, staged_directory
+    from calib3r_graph.io.predictions import load_predictions
+    from calib3r_graph.solver.graph import NoiseOptions
 
     ds = load_dataset(args.dataset)
     methods = args.methods.split(",") if args.methods else cmp.METHODS
@@ -201,13 +201,13 @@ def cmd_compare(args):
     with staged_directory(out) as stage:
         atomic_write_json(stage / "comparison.json", result)
         if ref_name and ref_name.startswith("pattern-ba"):
-            from calib3r_graph.consistency import consistency, sigma_table
+            from calib3r_graph.evaluation.consistency import consistency, sigma_table
 
             result["in_sigmas"] = consistency(result, "pattern-ba")
             atomic_write_json(stage / "comparison.json", result)
         if ref_name:
             table = cmp.markdown_table(result, reference, ref_name)
-            from calib3r_graph.evaluate import metric_scale_table
+            from calib3r_graph.evaluation.evaluate import metric_scale_table
 
             if metric_scale_table(result):
                 table += "\n" + metric_scale_table(result)
@@ -225,7 +225,7 @@ def cmd_compare(args):
             atomic_write_json(stage / "views_sweep.json", sweep)
             cmp.sweep_plot(sweep, stage / "views_sweep.png", ref_name)
         if args.halves:
-            from calib3r_graph import consistency
+            from calib3r_graph.evaluation import consistency
 
             halves = cmp.halves(ds, preds, noise, methods)
             halves_md = cmp.halves_table(halves)
@@ -259,15 +259,15 @@ def cmd_import(args):
         raise InputError(dst, "exists and is not empty (use --force to write into it)")
     board = None
     if args.board:
-        from calib3r_graph.boards import parse_board
+        from calib3r_graph.io.boards import parse_board
 
         board = parse_board(args.board)  # COLSxROWS inner corners, or charuco:/circles:/acircles: specs
     print(import_recording(args.format, args.src, dst, board, progress=not args.quiet))
 
 
 def cmd_evaluate(args):
-    from calib3r_graph.evaluate import evaluate
-    from calib3r_graph.output import atomic_write_json
+    from calib3r_graph.evaluation.evaluate import evaluate
+    from calib3r_graph.io.output import atomic_write_json
 
     report = evaluate(args.result, args.dataset)
     for cam, e in report.get("hand_eye", {}).items():
@@ -315,8 +315,8 @@ def cmd_import_rosbag(args):
 
 
 def cmd_export(args):
-    from calib3r_graph.export import export
-    from calib3r_graph.output import atomic_write_text
+    from calib3r_graph.io.export import export
+    from calib3r_graph.io.output import atomic_write_text
 
     text = export(args.result, args.format, args.parent, args.child, args.camera, args.child_convention)
     if args.out:

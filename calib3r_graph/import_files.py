@@ -15,14 +15,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from calib3r_graph import boards
-from calib3r_graph.dataset import Camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.errors import InputError
 from calib3r_graph.importers import (apply_convention, board_poses, calibrate_intrinsics, choose_convention,
                                      convention_lines, detect_all, refine_intrinsics_with_robot)
+from calib3r_graph.io import boards
+from calib3r_graph.io.dataset import Camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.io.intrinsics_files import read_intrinsics
+from calib3r_graph.io.output import staged_directory
 from calib3r_graph.io.pose_files import expand, frame_number, parse_format, read_poses
-from calib3r_graph.output import staged_directory
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

@@ -3,7 +3,7 @@
 * ``rwhe`` (RWHE-Calib, Ali et al., Sensors 2019): images ``01.png``... or ``im_XX.bmp``,
   ``RobotPosesVec.txt`` (one row-major 4x4 per line), ``squaresize.txt`` (or the misspelt
   ``sqauresize.txt``), board from ``--board`` (``COLSxROWS`` inner corners, or any spec of
-  calib3r_graph.boards, e.g. ``charuco:COLSxROWS:SQUARE_M:MARKER_M``).
+  calib3r_graph.io.boards, e.g. ``charuco:COLSxROWS:SQUARE_M:MARKER_M``).
 * ``tabb`` (Tabb & Ahmad Yousef, MVA 2017): ``imageXX.png``, ``robot_cali.txt`` (count, then
   4x4 matrices), ``calibration_object.txt`` (board and tile size).
 
@@ -25,11 +25,11 @@ import gtsam
 import numpy as np
 from tqdm import tqdm
 
-from calib3r_graph import boards
-from calib3r_graph.boards import Board
-from calib3r_graph.dataset import Camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.errors import InputError
-from calib3r_graph.output import staged_directory
+from calib3r_graph.io import boards
+from calib3r_graph.io.boards import Board
+from calib3r_graph.io.dataset import Camera, write_dataset_yaml, write_robot_poses
+from calib3r_graph.io.output import staged_directory
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".bmp", ".jpg", ".jpeg")
@@ -234,9 +234,9 @@ def refine_intrinsics_with_robot(K, dist, size, detections, cam_T_board, base_T_
     A board that is small and far in the image leaves focal length and board distance
     entangled in a board-only calibration; the robot's metric motion separates them.
     """
-    from calib3r_graph.dataset import Dataset
-    from calib3r_graph.graph import NoiseOptions
-    from calib3r_graph.pattern import Detection, opencv_hand_eye, pattern_ba
+    from calib3r_graph.evaluation.pattern import Detection, opencv_hand_eye, pattern_ba
+    from calib3r_graph.io.dataset import Dataset
+    from calib3r_graph.solver.graph import NoiseOptions
 
     cam = Camera("cam0", "OPENCV", int(size[0]), int(size[1]), (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist))
     ds = Dataset(Path("."), {"cam0": cam}, {f: base_T_ee[f] for f in detections}, pattern)

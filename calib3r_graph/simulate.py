@@ -19,9 +19,9 @@ import yaml
 from scipy import ndimage
 from tqdm import tqdm
 
-from calib3r_graph.dataset import Camera, pose_to_dict, write_dataset_yaml, write_robot_poses
-from calib3r_graph.output import atomic_path, atomic_write_text, staged_directory
-from calib3r_graph.predictions import PairMatches, ViewPrediction, save_predictions, view_id
+from calib3r_graph.io.dataset import Camera, pose_to_dict, write_dataset_yaml, write_robot_poses
+from calib3r_graph.io.output import atomic_path, atomic_write_text, staged_directory
+from calib3r_graph.io.predictions import PairMatches, ViewPrediction, save_predictions, view_id
 
 log = logging.getLogger(__name__)
 

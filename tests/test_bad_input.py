@@ -9,9 +9,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset
 from calib3r_graph.errors import InputError
-from calib3r_graph.predictions import load_predictions
+from calib3r_graph.io.dataset import load_dataset
+from calib3r_graph.io.predictions import load_predictions
 from tests.conftest import SAMPLE
 
 
@@ -99,7 +99,7 @@ def test_millimetres_declared_as_metres(sample_copy, tmp_path, capsys):
 
 
 def test_inverted_pose_direction(sample_copy, tmp_path, capsys):
-    from calib3r_graph.dataset import read_robot_poses, write_robot_poses
+    from calib3r_graph.io.dataset import read_robot_poses, write_robot_poses
 
     poses = read_robot_poses(sample_copy / "robot_poses.csv")
     write_robot_poses(sample_copy / "robot_poses.csv", {f: p.inverse() for f, p in poses.items()})
@@ -180,9 +180,9 @@ def test_failed_run_keeps_previous_results(sample_copy, tmp_path, capsys):
 def test_disconnected_covisibility_graph_is_solved_per_component(simulated, tmp_path):
     """Cut every edge between the first and second half of the frames: both halves still
     constrain the same ee_T_cam, each with its own placement."""
-    from calib3r_graph.evaluate import hand_eye_errors
-    from calib3r_graph.dataset import load_ground_truth
-    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.evaluation.evaluate import hand_eye_errors
+    from calib3r_graph.io.dataset import load_ground_truth
+    from calib3r_graph.solver.solve import SolveOptions, solve
 
     root = tmp_path / "d"
     shutil.copytree(simulated(seed=3, frames=14), root)

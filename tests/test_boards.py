@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import yaml
 
-from calib3r_graph import boards, pattern
-from calib3r_graph.boards import Board
-from calib3r_graph.dataset import Camera, load_dataset, write_dataset_yaml, write_robot_poses
 from calib3r_graph.errors import InputError
+from calib3r_graph.evaluation import pattern
 from calib3r_graph.geometry import pose_error
+from calib3r_graph.io import boards
+from calib3r_graph.io.boards import Board
+from calib3r_graph.io.dataset import Camera, load_dataset, write_dataset_yaml, write_robot_poses
 
 K = np.array([[600.0, 0, 322.0], [0, 600.0, 238.0], [0, 0, 1]])
 SIZE = (640, 480)
@@ -161,8 +162,8 @@ def board_rig(root, spec, partial: bool):
 ])
 def test_pattern_methods_on_other_boards(tmp_path, spec, methods):
     """compare's OpenCV solvers and pattern-ba, through dataset.yaml's pattern block."""
-    from calib3r_graph.compare import run_method
-    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.evaluation.compare import run_method
+    from calib3r_graph.solver.graph import NoiseOptions
 
     charuco = spec.startswith("charuco")
     truth = board_rig(tmp_path / "d", spec, partial=charuco)

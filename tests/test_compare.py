@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.compare import METHODS, two_stage_hand_eye
+from calib3r_graph.evaluation.compare import METHODS, two_stage_hand_eye
 from tests.conftest import SAMPLE
 
 
@@ -38,8 +38,8 @@ def test_compare_on_the_sample(tmp_path, capsys):
         assert r["status"] == "ok", (m, r["status"])
         assert r["seconds"] > 0
         assert set(r["cameras"]) == {"cam0", "cam1"}
-    from calib3r_graph.compare import errors_against
-    from calib3r_graph.dataset import load_ground_truth
+    from calib3r_graph.evaluation.compare import errors_against
+    from calib3r_graph.io.dataset import load_ground_truth
 
     errs = errors_against(res, load_ground_truth(SAMPLE)["hand_eye"])
     for cam in ("cam0", "cam1"):

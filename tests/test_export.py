@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from calib3r_graph.cli import main
-from calib3r_graph.export import FORMATS, export, rpy_fixed_xyz
+from calib3r_graph.io.export import FORMATS, export, rpy_fixed_xyz
 
 SIGMA = {"rx_deg": 0.0151, "ry_deg": 0.0132, "rz_deg": 0.0213, "x_mm": 0.241, "y_mm": 0.172, "z_mm": 0.803}
 SIGMA_MODEL = {"rx_deg": 0.011, "ry_deg": 0.009, "rz_deg": 0.017, "x_mm": 0.18, "y_mm": 0.12, "z_mm": 0.61}

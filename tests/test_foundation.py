@@ -6,12 +6,12 @@ import gtsam
 import numpy as np
 import pytest
 
-from calib3r_graph.dataset import load_dataset, load_ground_truth, pose_from_dict
 from calib3r_graph.errors import InputError
-from calib3r_graph.evaluate import hand_eye_errors
+from calib3r_graph.evaluation.evaluate import hand_eye_errors
 from calib3r_graph.frontends.foundation import convert, dust3r_grid, grid_intrinsics, vggt_grid
-from calib3r_graph.predictions import load_predictions
-from calib3r_graph.solve import SolveOptions, solve
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth, pose_from_dict
+from calib3r_graph.io.predictions import load_predictions
+from calib3r_graph.solver.solve import SolveOptions, solve
 
 
 def test_network_grids_match_the_models_preprocessing():

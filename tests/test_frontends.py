@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset, load_ground_truth
-from calib3r_graph.evaluate import hand_eye_errors
+from calib3r_graph.evaluation.evaluate import hand_eye_errors
 from calib3r_graph.frontends import run_frontend
-from calib3r_graph.predictions import load_predictions
-from calib3r_graph.solve import SolveOptions, solve
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth
+from calib3r_graph.io.predictions import load_predictions
+from calib3r_graph.solver.solve import SolveOptions, solve
 
 
 @pytest.fixture(scope="module")

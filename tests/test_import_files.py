@@ -11,10 +11,10 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
-from calib3r_graph import boards
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset, load_ground_truth, pose_from_dict
 from calib3r_graph.errors import InputError
+from calib3r_graph.io import boards
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth, pose_from_dict
 from calib3r_graph.io.intrinsics_files import read_intrinsics
 from calib3r_graph.io.pose_files import parse_format, read_poses
 from tests.test_boards import look_at, render_view

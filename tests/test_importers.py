@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset, load_ground_truth, pose_from_dict
 from calib3r_graph.errors import InputError
 from calib3r_graph.importers import import_recording
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth, pose_from_dict
 
 
 @pytest.fixture(scope="module")

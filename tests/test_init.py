@@ -4,7 +4,7 @@ import pytest
 
 from calib3r_graph.errors import InputError
 from calib3r_graph.geometry import ransac_sim3, umeyama
-from calib3r_graph.init import hand_eye_closed_form
+from calib3r_graph.solver.init import hand_eye_closed_form
 
 
 def test_ransac_sim3_recovers_similarity_despite_outliers():
@@ -59,7 +59,7 @@ def test_umeyama_exact():
 
 
 def test_inverse_cholesky_3x3_whitens():
-    from calib3r_graph.graph import inverse_cholesky_3x3
+    from calib3r_graph.solver.graph import inverse_cholesky_3x3
 
     rng = np.random.default_rng(4)
     A = rng.normal(size=(50, 3, 3))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset, read_robot_poses, write_robot_poses
+from calib3r_graph.io.dataset import load_dataset, read_robot_poses, write_robot_poses
 from tests.conftest import REPO
 from tests.test_bad_input import expect_error as expect_one_line_error
 
@@ -73,7 +73,7 @@ def test_resized_image_is_one_line_naming_the_file(sample_copy, tmp_path, capsys
 def test_image_size_reads_png_and_jpeg_headers(tmp_path):
     import cv2
 
-    from calib3r_graph.dataset import image_size
+    from calib3r_graph.io.dataset import image_size
 
     img = np.random.default_rng(0).integers(0, 255, (123, 457, 3), dtype=np.uint8)
     for name, params in (("a.png", []), ("b.jpg", [cv2.IMWRITE_JPEG_QUALITY, 90]),
@@ -171,8 +171,9 @@ HEAVY = ("open3d", "pycolmap", "matplotlib", "scipy.stats", "plotly")
 def test_solve_path_imports_no_heavy_library():
     """What `solve` imports (cli, dataset, predictions, solve, results) pulls in none of the libraries
     that take seconds to import; they are imported where they are used."""
-    code = ("import sys, calib3r_graph.cli, calib3r_graph.dataset, calib3r_graph.predictions, calib3r_graph.solve, "
-            "calib3r_graph.results, calib3r_graph.evaluate, calib3r_graph.frontends\n"
+    code = ("import sys, calib3r_graph.cli, calib3r_graph.io.dataset, calib3r_graph.io.predictions, "
+            "calib3r_graph.solver.solve, calib3r_graph.io.results, calib3r_graph.evaluation.evaluate, "
+            "calib3r_graph.frontends\n"
             f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout
@@ -181,7 +182,7 @@ def test_solve_path_imports_no_heavy_library():
 def test_cloud_is_written_as_binary_ply_without_open3d(tmp_path):
     import open3d as o3d
 
-    from calib3r_graph.results import voxel_down_sample, write_ply
+    from calib3r_graph.io.results import voxel_down_sample, write_ply
 
     rng = np.random.default_rng(0)
     pts = rng.uniform(0, 0.2, (200000, 3))

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset
-from calib3r_graph.evaluate import metric_scale_accuracy
-from calib3r_graph.pattern import detect
-from calib3r_graph.predictions import load_predictions
-from calib3r_graph.results import read_views
+from calib3r_graph.evaluation.evaluate import metric_scale_accuracy
+from calib3r_graph.evaluation.pattern import detect
+from calib3r_graph.io.dataset import load_dataset
+from calib3r_graph.io.predictions import load_predictions
+from calib3r_graph.io.results import read_views
 from tests.conftest import SAMPLE
 
 

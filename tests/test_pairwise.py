@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset, load_ground_truth, subset_dataset
-from calib3r_graph.evaluate import hand_eye_errors
+from calib3r_graph.evaluation.evaluate import hand_eye_errors
 from calib3r_graph.frontends.pairwise import (Features, PairGeometry, PairwiseOptions, pairwise_predictions,
                                               robot_consistent, view_depths)
 from calib3r_graph.geometry import pose_error
-from calib3r_graph.graph import NoiseOptions
-from calib3r_graph.predictions import load_predictions
-from calib3r_graph.solve import SolveOptions, solve
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth, subset_dataset
+from calib3r_graph.io.predictions import load_predictions
+from calib3r_graph.solver.graph import NoiseOptions
+from calib3r_graph.solver.solve import SolveOptions, solve
 from tests.conftest import SHARED
 
 REAL = SHARED / "real"

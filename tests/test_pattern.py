@@ -9,9 +9,9 @@ import gtsam
 import numpy as np
 import pytest
 
-from calib3r_graph.dataset import Camera, Dataset
-from calib3r_graph.graph import NoiseOptions
-from calib3r_graph.pattern import Detection, board_points, camera_intrinsics, opencv_hand_eye, pattern_ba
+from calib3r_graph.evaluation.pattern import Detection, board_points, camera_intrinsics, opencv_hand_eye, pattern_ba
+from calib3r_graph.io.dataset import Camera, Dataset
+from calib3r_graph.solver.graph import NoiseOptions
 
 
 def synthetic_board_recording(corner_px, robot_mm, robot_deg, n=25, seed=0, printed_scale=1.0, cam=None,

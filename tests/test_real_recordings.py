@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.compare import errors_against
-from calib3r_graph.dataset import ee_T_cam_by_camera, load_dataset
+from calib3r_graph.evaluation.compare import errors_against
 from calib3r_graph.importers import import_recording
-from calib3r_graph.uncertainty import systematic_error_gain
+from calib3r_graph.io.dataset import ee_T_cam_by_camera, load_dataset
+from calib3r_graph.solver.uncertainty import systematic_error_gain
 from tests.conftest import SHARED
 
 REAL = SHARED / "real"

@@ -172,13 +172,13 @@ def test_solve_report_shows_model_and_jackknife_sigmas():
     the calibration table shows all three sigmas and the jackknife ratios."""
     import numpy as np
 
-    from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.graph import NoiseOptions
-    from calib3r_graph.jackknife import jackknife
-    from calib3r_graph.predictions import load_predictions
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.io.predictions import load_predictions
+    from calib3r_graph.io.results import calibration_json, summary_text, uncertainty_report
     from calib3r_graph.report import solve_report_html
-    from calib3r_graph.results import calibration_json, summary_text, uncertainty_report
-    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.solver.graph import NoiseOptions
+    from calib3r_graph.solver.jackknife import jackknife
+    from calib3r_graph.solver.solve import SolveOptions, solve
 
     ds = load_dataset(SAMPLE)
     preds = load_predictions(ds.root, "sim", ds.cameras, set(ds.frames))

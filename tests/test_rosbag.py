@@ -13,9 +13,9 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset
 from calib3r_graph.errors import InputError
-from calib3r_graph.evaluate import evaluate
+from calib3r_graph.evaluation.evaluate import evaluate
+from calib3r_graph.io.dataset import load_dataset
 from calib3r_graph.io.rosbag import TfTree
 
 T0 = 1_700_000_000 * 10**9  # a realistic epoch, ns

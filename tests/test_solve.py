@@ -9,10 +9,10 @@ import open3d as o3d
 import pytest
 
 from calib3r_graph.cli import main
-from calib3r_graph.dataset import load_dataset, load_ground_truth
-from calib3r_graph.evaluate import hand_eye_errors
-from calib3r_graph.predictions import load_predictions
-from calib3r_graph.solve import SolveOptions, solve
+from calib3r_graph.evaluation.evaluate import hand_eye_errors
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth
+from calib3r_graph.io.predictions import load_predictions
+from calib3r_graph.solver.solve import SolveOptions, solve
 from tests.conftest import SAMPLE
 
 
@@ -54,7 +54,7 @@ def test_accuracy_goals(simulated, sim, mm, deg):
 def test_depth_correction_is_what_beats_distortion(simulated):
     """Without the per-view depth correction the smooth distortion biases the result by millimetres."""
     root = simulated(seed=1, frames=12)
-    from calib3r_graph.graph import NoiseOptions
+    from calib3r_graph.solver.graph import NoiseOptions
 
     _, _, with_corr = solve_dataset(root)
     _, _, without = solve_dataset(root, noise=NoiseOptions(depth_correction_sigma=0.0))

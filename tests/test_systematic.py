@@ -1,5 +1,5 @@
 """The systematic part of the covariance: a kinematic error field measured from the robot
-residuals (calib3r_graph/systematic.py). Seeded synthetic motions; tolerances in mm."""
+residuals (calib3r_graph/solver/systematic.py). Seeded synthetic motions; tolerances in mm."""
 
 import shutil
 
@@ -7,10 +7,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from calib3r_graph.dataset import load_dataset, load_ground_truth, read_robot_poses, write_robot_poses
-from calib3r_graph.predictions import load_predictions
-from calib3r_graph.solve import SolveOptions, solve
-from calib3r_graph.systematic import measure_field
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth, read_robot_poses, write_robot_poses
+from calib3r_graph.io.predictions import load_predictions
+from calib3r_graph.solver.solve import SolveOptions, solve
+from calib3r_graph.solver.systematic import measure_field
 from tests.conftest import SAMPLE
 
 EE_T_CAM = gtsam.Pose3(gtsam.Rot3.Ypr(1.4, 0.1, -1.6), np.array([0.03, -0.10, 0.08]))

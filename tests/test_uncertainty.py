@@ -4,7 +4,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from calib3r_graph.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
+from calib3r_graph.solver.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
                                       systematic_error_gain)
 
 
@@ -59,7 +59,7 @@ def test_weak_direction_is_named_in_the_ee_frame():
 
 
 def test_noise_calibration_recovers_variance_and_detects_correlation():
-    from calib3r_graph.observations import PairObservations
+    from calib3r_graph.solver.observations import PairObservations
 
     rng = np.random.default_rng(0)
     n = 4000
@@ -79,11 +79,11 @@ def test_noise_calibration_recovers_variance_and_detects_correlation():
 
 @pytest.mark.slow
 def test_plan_prefers_informative_candidates(tmp_path):
-    from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.graph import NoiseOptions
-    from calib3r_graph.plan import rank_candidates
-    from calib3r_graph.predictions import load_predictions
-    from calib3r_graph.solve import SolveOptions, solve
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.io.predictions import load_predictions
+    from calib3r_graph.solver.graph import NoiseOptions
+    from calib3r_graph.solver.plan import rank_candidates
+    from calib3r_graph.solver.solve import SolveOptions, solve
     from tests.conftest import SAMPLE
 
     ds = load_dataset(SAMPLE)
@@ -103,10 +103,10 @@ def test_plan_prefers_informative_candidates(tmp_path):
 def test_jackknife_agrees_with_the_reported_covariance_on_simulated_data(simulated):
     """Leave-one-pose-out spread vs the reported sigma: within a factor ~2.5 (a jackknife over
     12 poses is itself noisy), and written per camera."""
-    from calib3r_graph.dataset import load_dataset
-    from calib3r_graph.predictions import load_predictions
-    from calib3r_graph.solve import SolveOptions, solve
-    from calib3r_graph.jackknife import jackknife
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.io.predictions import load_predictions
+    from calib3r_graph.solver.jackknife import jackknife
+    from calib3r_graph.solver.solve import SolveOptions, solve
 
     root = simulated(seed=61, frames=12)
     ds = load_dataset(root)
@@ -125,7 +125,7 @@ def test_plan_cli(tmp_path, capsys):
     import json
 
     from calib3r_graph.cli import main
-    from calib3r_graph.dataset import read_robot_poses, write_robot_poses
+    from calib3r_graph.io.dataset import read_robot_poses, write_robot_poses
     from tests.conftest import SAMPLE
 
     bad = tmp_path / "bad.csv"

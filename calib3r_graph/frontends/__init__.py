@@ -26,7 +26,7 @@ def ensure_predictions(ds, requested: str | None = None, progress: bool = True, 
     ``announce(line)`` is told which frontend runs (default: the log). Used by ``solve`` and ``compare``."""
     import logging
 
-    from calib3r_graph.predictions import available_predictions, choose_predictions
+    from calib3r_graph.io.predictions import available_predictions, choose_predictions
 
     if requested is None and not available_predictions(ds.root):
         frontend = best_frontend(ds)

@@ -25,8 +25,9 @@ from tqdm import tqdm
 
 from calib3r_graph.errors import InputError, SolveError
 from calib3r_graph.frontends.common import covisibility_edges
-from calib3r_graph.output import atomic_write_text
-from calib3r_graph.predictions import PairMatches, ViewPrediction, read_poses_csv, save_predictions, view_id  # noqa: F401
+from calib3r_graph.io.output import atomic_write_text
+from calib3r_graph.io.predictions import (PairMatches, ViewPrediction, read_poses_csv,  # noqa: F401
+                                          save_predictions, view_id)
 
 log = logging.getLogger(__name__)
 

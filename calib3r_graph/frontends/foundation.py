@@ -27,7 +27,7 @@ import numpy as np
 
 from calib3r_graph.errors import InputError
 from calib3r_graph.frontends.common import aggregate_pointmaps, covisibility_edges
-from calib3r_graph.predictions import PairMatches, ViewPrediction, save_predictions, view_id
+from calib3r_graph.io.predictions import PairMatches, ViewPrediction, save_predictions, view_id
 
 log = logging.getLogger(__name__)
 

@@ -76,9 +76,10 @@ from tqdm import tqdm
 from calib3r_graph.errors import InputError, SolveError
 from calib3r_graph.frontends.common import aggregate_pointmaps, covisibility_edges, load_gray, undistort_maps
 from calib3r_graph.geometry import hand_eye_rotation, rotation_angle_deg
-from calib3r_graph.observations import sample_bilinear
-from calib3r_graph.output import atomic_savez
-from calib3r_graph.predictions import PairMatches, Predictions, ViewPrediction, save_predictions, split_view_id, view_id
+from calib3r_graph.io.output import atomic_savez
+from calib3r_graph.io.predictions import (PairMatches, Predictions, ViewPrediction, save_predictions, split_view_id,
+                                          view_id)
+from calib3r_graph.solver.observations import sample_bilinear
 
 log = logging.getLogger(__name__)
 

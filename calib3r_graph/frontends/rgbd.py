@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from calib3r_graph.errors import InputError
 from calib3r_graph.frontends.common import covisibility_edges, load_gray, match_verified, sift_features, undistort_maps
-from calib3r_graph.predictions import PairMatches, ViewPrediction, save_predictions, view_id
+from calib3r_graph.io.predictions import PairMatches, ViewPrediction, save_predictions, view_id
 
 log = logging.getLogger(__name__)
 

@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from calib3r_graph.dataset import Camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.errors import InputError
-from calib3r_graph.output import atomic_path, staged_directory
+from calib3r_graph.io.dataset import Camera, write_dataset_yaml, write_robot_poses
+from calib3r_graph.io.output import atomic_path, staged_directory
 
 log = logging.getLogger(__name__)
 SPEED_WINDOW_S = 0.1  # the flange must be still within this of an image's stamp

@@ -7,8 +7,8 @@ import numpy as np
 import plotly.graph_objects as go
 from plotly.subplots import make_subplots
 
-from calib3r_graph.compare import METHODS, errors_against
-from calib3r_graph.dataset import ee_T_cam_by_camera
+from calib3r_graph.evaluation.compare import METHODS, errors_against
+from calib3r_graph.io.dataset import ee_T_cam_by_camera
 from calib3r_graph.report.page import Page, esc, finite, fmt
 
 OURS = "calib3r-graph"

@@ -1,4 +1,4 @@
-"""The numbers behind the report, computed from a :class:`~calib3r_graph.solve.Solution`.
+"""The numbers behind the report, computed from a :class:`~calib3r_graph.solver.solve.Solution`.
 
 * Per robot pose: the robot pose factor's residual ``e = Log((base_T_ee X)^-1 base_T_cam)`` on the
   frame's reference view (the first camera with a view at that frame, as in the graph), in mm and
@@ -13,9 +13,9 @@
 import gtsam
 import numpy as np
 
-from calib3r_graph.graph import NoiseOptions, match_residuals, point_sqrt_info
-from calib3r_graph.predictions import split_view_id
-from calib3r_graph.solve import robust_weights
+from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.solver.graph import NoiseOptions, match_residuals, point_sqrt_info
+from calib3r_graph.solver.solve import robust_weights
 from factors.hand_eye import robot_pose_noise_covariance
 
 CHI2_6_99 = 16.811893829770927  # scipy.stats.chi2.ppf(0.99, 6), written out: scipy.stats costs ~0.4 s to import

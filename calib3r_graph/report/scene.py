@@ -6,7 +6,7 @@ the first frame's flange and scaled up by a stated factor when it would be too s
 import numpy as np
 import plotly.graph_objects as go
 
-from calib3r_graph.predictions import split_view_id
+from calib3r_graph.io.predictions import split_view_id
 
 CAMERA_COLOURS = ["#e8710a", "#7b1fa2", "#00897b", "#c2185b", "#3949ab"]
 AXIS_SCALE = [[0.0, "#d62728"], [0.5, "#2ca02c"], [1.0, "#1f77b4"]]  # x red, y green, z blue

@@ -8,11 +8,11 @@ import numpy as np
 import plotly.graph_objects as go
 from plotly.subplots import make_subplots
 
-from calib3r_graph.output import atomic_write_text
+from calib3r_graph.io.output import atomic_write_text
+from calib3r_graph.io.results import AXES, covariance_in_ee_frame, point_cloud
 from calib3r_graph.report.page import Page, esc, finite, fmt
 from calib3r_graph.report.residuals import CHI2_6_99, pair_statistics, robot_pose_residuals
 from calib3r_graph.report.scene import CAMERA_COLOURS, MAX_CLOUD_POINTS, cloud_arrays, scene_figure
-from calib3r_graph.results import AXES, covariance_in_ee_frame, point_cloud
 
 SIGMA_KEYS = ["x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"]
 KIND_PATTERN = {"total": "", "model": "/", "jackknife": "x"}

@@ -28,7 +28,7 @@ import numpy as np
 import factors
 from factors.hand_eye import robot_pose_noise_covariance
 from factors.match3d import DEPTH_CORRECTION_DIM, Match3DMeasurement, match3d_residuals
-from calib3r_graph.predictions import split_view_id
+from calib3r_graph.io.predictions import split_view_id
 
 
 @dataclass

@@ -20,8 +20,8 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from calib3r_graph.dataset import ee_T_cam_by_camera
 from calib3r_graph.errors import InputError
+from calib3r_graph.io.dataset import ee_T_cam_by_camera
 
 FORMATS = ("urdf", "xacro", "ros2-launch", "ros1-launch", "tf-yaml", "easy-handeye")
 # optical_T_link: the camera_link body frame (x forward, y left, z up) in optical axes.
@@ -56,7 +56,7 @@ def load_result(result):
     path = path / "calibration.json" if path.is_dir() else path
     if not path.is_file():
         raise InputError(path, "missing (run 'calib3r-graph solve' first)")
-    from calib3r_graph.results import read_calibration
+    from calib3r_graph.io.results import read_calibration
 
     try:
         calib = read_calibration(path)

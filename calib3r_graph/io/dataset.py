@@ -172,8 +172,8 @@ def _interpret(root: Path, path: Path, meta: dict, skip_missing: bool) -> Datase
 def _validate_pattern(pattern, path):
     if not isinstance(pattern, dict):
         raise InputError(path, "must be a mapping with type, inner_corners and square_size", "pattern")
-    if pattern.get("type") in ("charuco", "circles", "asymmetric_circles"):  # see calib3r_graph/boards.py
-        from calib3r_graph.boards import from_pattern
+    if pattern.get("type") in ("charuco", "circles", "asymmetric_circles"):  # see calib3r_graph/io/boards.py
+        from calib3r_graph.io.boards import from_pattern
 
         from_pattern(pattern, path)
         return
@@ -304,7 +304,7 @@ def pose_to_row(frame: str, pose: gtsam.Pose3, scale: float = 1.0) -> list:
 
 
 def write_robot_poses(path: Path, base_T_ee: dict, unit: str = "m"):
-    from calib3r_graph.output import atomic_write_text
+    from calib3r_graph.io.output import atomic_write_text
 
     scale = 1.0 / UNIT_TO_METRES[unit]
     lines = [",".join(ROBOT_COLUMNS)] + [",".join(pose_to_row(f, p, scale)) for f, p in base_T_ee.items()]
@@ -320,7 +320,7 @@ def camera_to_yaml(cam: Camera) -> dict:
 
 
 def write_dataset_yaml(root: Path, cameras, unit="m", pattern=None, poses_name="robot_poses.csv", extra=None):
-    from calib3r_graph.output import atomic_write_text
+    from calib3r_graph.io.output import atomic_write_text
 
     meta = {"format": FORMAT, "robot": {"poses": poses_name, "unit": unit},
             "cameras": [camera_to_yaml(c) for c in cameras]}

@@ -4,7 +4,7 @@ It re-runs the solver, so it sits above ``solve`` (and ``uncertainty``, which ``
 
 import numpy as np
 
-from calib3r_graph.predictions import split_view_id
+from calib3r_graph.io.predictions import split_view_id
 
 
 def jackknife(ds, preds, opt, sol, progress=True) -> dict:
@@ -36,10 +36,10 @@ def _leave_one_out(ds, preds, opt, frames, xis, progress):
     """Append each leave-one-frame-out solution's ee_T_cam to xis[camera]."""
     from tqdm import tqdm
 
-    from calib3r_graph.dataset import subset_dataset
-    from calib3r_graph.predictions import subset_predictions
     from calib3r_graph.errors import Calib3rError
-    from calib3r_graph.solve import solve
+    from calib3r_graph.io.dataset import subset_dataset
+    from calib3r_graph.io.predictions import subset_predictions
+    from calib3r_graph.solver.solve import solve
 
     for f in tqdm(frames, desc="jackknife", disable=None if progress else True, leave=False):
         keep = [g for g in frames if g != f]
@@ -55,7 +55,7 @@ def _leave_one_out(ds, preds, opt, frames, xis, progress):
 def _jackknife_report(sol, xis) -> dict:
     import gtsam
 
-    from calib3r_graph.results import covariance_in_ee_frame
+    from calib3r_graph.io.results import covariance_in_ee_frame
 
     out = {}
     for c, xs in xis.items():

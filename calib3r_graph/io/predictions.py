@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.output import atomic_savez, atomic_write_json, staged_directory
+from calib3r_graph.io.output import atomic_savez, atomic_write_json, staged_directory
 
 log = logging.getLogger(__name__)
 

@@ -43,7 +43,7 @@ def in_sigmas(A, sigma_A: dict | None, B, sigma_B: dict | None) -> dict:
 def consistency(result: dict, reference_method: str) -> dict:
     """{method: {camera: in_sigmas(...)}} of every method that reports a sigma against the reference
     method of the same comparison (a compare() result)."""
-    from calib3r_graph.dataset import ee_T_cam_by_camera
+    from calib3r_graph.io.dataset import ee_T_cam_by_camera
 
     ref = result["methods"].get(reference_method)
     if not ref or ref["status"] != "ok":
@@ -64,7 +64,7 @@ def consistency(result: dict, reference_method: str) -> dict:
 
 def halves_consistency(first: dict, second: dict) -> dict:
     """{method: {camera: in_sigmas(first half, second half)}}: the halves' difference in sigmas of a difference."""
-    from calib3r_graph.dataset import ee_T_cam_by_camera
+    from calib3r_graph.io.dataset import ee_T_cam_by_camera
 
     out = {}
     for m, a in first["methods"].items():

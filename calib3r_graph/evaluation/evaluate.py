@@ -12,9 +12,9 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from calib3r_graph.dataset import ee_T_cam_by_camera, load_ground_truth
 from calib3r_graph.errors import InputError
 from calib3r_graph.geometry import pose_error
+from calib3r_graph.io.dataset import ee_T_cam_by_camera, load_ground_truth
 
 
 def hand_eye_errors(T_ee_cam: dict, ground_truth: dict) -> dict:
@@ -47,7 +47,7 @@ def evaluate(result_dir, dataset_dir) -> dict:
       (``metric_scale_accuracy``);
     * ``reconstruction``: median and 90 % point-to-surface distance, where the true geometry is known.
     """
-    from calib3r_graph.dataset import load_dataset
+    from calib3r_graph.io.dataset import load_dataset
 
     gt = load_ground_truth(dataset_dir)
     ds = load_dataset(dataset_dir, skip_missing=True)
@@ -61,8 +61,8 @@ def evaluate(result_dir, dataset_dir) -> dict:
         load_calibration(result_dir)  # a result folder at all
     need_views = ds.pattern or (gt or {}).get("simulation")
     if need_views:
-        from calib3r_graph.predictions import load_predictions
-        from calib3r_graph.results import read_views
+        from calib3r_graph.io.predictions import load_predictions
+        from calib3r_graph.io.results import read_views
 
         try:
             states = read_views(Path(result_dir) / "views.npz")
@@ -153,9 +153,9 @@ def metric_scale_accuracy(ds, preds, states, detections: dict | None = None, use
     board points in 3D, s the board's nominal spacing (the square size), σ_s their standard deviation,
     δ_s = |m_s − s| / s · 100. ``detections``: {camera: [Detection]} when already detected.
     ``use_depth``: None decides per view, True / False forces depth / triangulation."""
-    from calib3r_graph import boards
-    from calib3r_graph.pattern import detect
-    from calib3r_graph.predictions import view_id
+    from calib3r_graph.evaluation.pattern import detect
+    from calib3r_graph.io import boards
+    from calib3r_graph.io.predictions import view_id
 
     obj = boards.points(boards.from_pattern(ds.pattern, ds.root / "dataset.yaml"))
     pairs, spacing = _adjacent_pairs(obj)
@@ -219,7 +219,7 @@ def reconstruction_accuracy(ds, preds, states, ground_truth: dict, max_points_pe
         return None
     import open3d as o3d
 
-    from calib3r_graph.results import point_cloud
+    from calib3r_graph.io.results import point_cloud
     from calib3r_graph.simulate import scene_from_simulation
 
     scene = scene_from_simulation(sim)

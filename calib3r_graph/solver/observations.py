@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib3r_graph.predictions import Predictions
+from calib3r_graph.io.predictions import Predictions
 from factors.match3d import depth_correction_basis
 
 

@@ -21,7 +21,7 @@ solved once more, so robot and scene factors are weighted by their real
 
 import numpy as np
 
-from calib3r_graph.predictions import split_view_id
+from calib3r_graph.io.predictions import split_view_id
 
 
 def noise_calibration(observations, residuals, unit_sqrt_info, weights, grid_size, cells=(6, 8)):
@@ -166,7 +166,7 @@ def systematic_error_gain(base_T_ee: dict, frames) -> tuple[float, np.ndarray]:
 
 def covariance_diagnostics(camera: str, T_ee_cam, cov, weak_mm: float = 2.0, weak_deg: float = 0.2) -> list:
     """Warnings for poorly constrained directions of ee_T_cam, read off its marginal covariance."""
-    from calib3r_graph.results import covariance_in_ee_frame
+    from calib3r_graph.io.results import covariance_in_ee_frame
 
     C = covariance_in_ee_frame(T_ee_cam, cov)
     msgs = []

@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import breadth_first_order, connected_components, mini
 
 from calib3r_graph.errors import InputError, SolveError
 from calib3r_graph.geometry import hand_eye_rotation, mean_pose, project_to_so3, ransac_sim3
-from calib3r_graph.predictions import split_view_id
+from calib3r_graph.io.predictions import split_view_id
 
 log = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ import gtsam
 import numpy as np
 
 import factors
-from calib3r_graph.graph import point_sqrt_info
-from calib3r_graph.predictions import split_view_id
+from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.solver.graph import point_sqrt_info
 from factors.hand_eye import robot_pose_noise_covariance
 
 MIN_VISIBLE = 30
@@ -93,7 +93,7 @@ def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) ->
             idx = rng.choice(idx, min(len(idx), max_points), replace=False)
             s_near = sol.depth_scale[best]
             values.insert(k_scale, s_near)
-            from calib3r_graph.observations import PairObservations
+            from calib3r_graph.solver.observations import PairObservations
 
             obs = PairObservations(best, "candidate", uv[idx], uv[idx], P[idx] / s_near, Q[idx] / s_near,
                                    np.ones(len(idx)), np.zeros((len(idx), 0)), np.zeros((len(idx), 0)))

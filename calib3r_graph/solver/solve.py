@@ -15,16 +15,16 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from calib3r_graph.dataset import Dataset
 from calib3r_graph.errors import SolveError
-from calib3r_graph.graph import (Keys, NoiseOptions, add_depth_correction_priors, add_robot_factors,
+from calib3r_graph.io.dataset import Dataset
+from calib3r_graph.io.predictions import Predictions, split_view_id
+from calib3r_graph.solver.graph import (Keys, NoiseOptions, add_depth_correction_priors, add_robot_factors,
                                  add_scale_gauge_factors, add_scene_factors, depth_correction, initial_values,
                                  match_residuals, point_sqrt_info, robot_chi2, robot_views)
-from calib3r_graph.init import initialise
-from calib3r_graph.observations import build_observations
-from calib3r_graph.predictions import Predictions, split_view_id
-from calib3r_graph.systematic import systematic_errors
-from calib3r_graph.uncertainty import (check_motion, covariance_diagnostics, motion_diagnostics,
+from calib3r_graph.solver.init import initialise
+from calib3r_graph.solver.observations import build_observations
+from calib3r_graph.solver.systematic import systematic_errors
+from calib3r_graph.solver.uncertainty import (check_motion, covariance_diagnostics, motion_diagnostics,
                                       noise_calibration, systematic_error_gain)
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     t = time.perf_counter()
     visual_poses = None
     if opt.init == "colmap":
-        from calib3r_graph.predictions import read_poses_csv
+        from calib3r_graph.io.predictions import read_poses_csv
 
         visual_poses = read_poses_csv(ds.root / "predictions" / preds.name / "poses.csv")
     init = initialise(sorted(preds.views), observations, ds.base_T_ee, str(ds.root / ds.meta["robot"]["poses"]),

@@ -37,8 +37,8 @@ class Detection:
 
 
 def board_points(pattern) -> np.ndarray:
-    """(N, 3) points of the dataset's board (any kind in calib3r_graph.boards), metres."""
-    from calib3r_graph import boards
+    """(N, 3) points of the dataset's board (any kind in calib3r_graph.io.boards), metres."""
+    from calib3r_graph.io import boards
 
     return boards.points(boards.from_pattern(pattern))
 
@@ -46,7 +46,7 @@ def board_points(pattern) -> np.ndarray:
 def detect(ds, camera: str, frames=None) -> list:
     """Board points and PnP pose in every image of a camera where the board is found (a
     checkerboard or circle grid whole, a ChArUco board in part: see Detection.ids)."""
-    from calib3r_graph import boards
+    from calib3r_graph.io import boards
 
     if not ds.pattern:
         raise SolveError("no pattern in dataset.yaml")
@@ -208,7 +208,7 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         px, robot_scale = new_px, new_robot
 
     def systematic(graph, values, with_scale):
-        from calib3r_graph.systematic import systematic_errors
+        from calib3r_graph.solver.systematic import systematic_errors
 
         robot = [(gtsam.symbol("e", j), gtsam.symbol("v", i), ds.base_T_ee[d.frame]) for i, (j, _, d) in enumerate(views)]
         return systematic_errors(graph, values, robot, {c: (gtsam.symbol("e", j), k_scale if with_scale else None)

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calib3r_graph.dataset import Dataset, pose_to_row
-from calib3r_graph.output import atomic_path, atomic_write_json, atomic_write_text, staged_directory
-from calib3r_graph.predictions import Predictions, split_view_id
+from calib3r_graph.io.dataset import Dataset, pose_to_row
+from calib3r_graph.io.output import atomic_path, atomic_write_json, atomic_write_text, staged_directory
+from calib3r_graph.io.predictions import Predictions, split_view_id
 from factors.match3d import depth_correction_basis
 
 AXES = ["rx", "ry", "rz", "x", "y", "z"]
@@ -214,7 +214,7 @@ def write_views(path, sol):
     """``views.npz``: each view's solved state, for ``evaluate`` to rebuild the reconstruction: ``view``
     ids, ``base_T_cam`` (N, 4, 4), ``depth_scale`` (N,) metres per frontend unit and ``depth_correction``
     (N, K) coefficients of ``1 + phi(u) c`` (factors/match3d.py)."""
-    from calib3r_graph.output import atomic_savez
+    from calib3r_graph.io.output import atomic_savez
 
     views = sorted(sol.base_T_cam)
     atomic_savez(path, view=np.array(views), base_T_cam=np.array([sol.base_T_cam[v].matrix() for v in views]),

@@ -20,11 +20,11 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from calib3r_graph.dataset import ee_T_cam_by_camera, subset_dataset
 from calib3r_graph.errors import Calib3rError, SolveError
 from calib3r_graph.geometry import hand_eye_rotation
-from calib3r_graph.predictions import Predictions, split_view_id, subset_predictions
-from calib3r_graph.results import uncertainty_report
+from calib3r_graph.io.dataset import ee_T_cam_by_camera, subset_dataset
+from calib3r_graph.io.predictions import Predictions, split_view_id, subset_predictions
+from calib3r_graph.io.results import uncertainty_report
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +75,7 @@ def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrin
 
     ``detections``: a dict shared between calls, so the board is detected once per frame set.
     """
-    from calib3r_graph import pattern
+    from calib3r_graph.evaluation import pattern
 
     sub = subset_dataset(ds, frames) if frames is not None else ds
     if name in pattern.OPENCV_METHODS or name == "pattern-ba":
@@ -104,8 +104,8 @@ def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrin
         raise SolveError("no predictions")
     p = subset_predictions(preds, sub.base_T_ee) if frames is not None else preds
     if name == "jcr-predictions":
-        from calib3r_graph.init import pairwise_sim3, spanning_tree_poses
-        from calib3r_graph.observations import build_observations
+        from calib3r_graph.solver.init import pairwise_sim3, spanning_tree_poses
+        from calib3r_graph.solver.observations import build_observations
 
         obs = build_observations(p)
         comps = spanning_tree_poses(sorted(p.views), obs, pairwise_sim3(obs))
@@ -114,7 +114,7 @@ def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrin
         biggest = max(comps, key=len)
         return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee), {}
     if name == "calib3r-graph":
-        from calib3r_graph.solve import SolveOptions, solve
+        from calib3r_graph.solver.solve import SolveOptions, solve
 
         sol = solve(sub, p, SolveOptions(noise=noise, progress=False))
         if frames is None and ds.pattern and detections is not None:
@@ -126,8 +126,8 @@ def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrin
 def _metric_scale(name, ds, preds, sol, detections):
     """The paper's δ_s of a method's reconstruction (evaluate.metric_scale_accuracy), left in
     ``detections`` for compare(), with its time, which is not the method's."""
-    from calib3r_graph import pattern
-    from calib3r_graph.evaluate import metric_scale_accuracy
+    from calib3r_graph.evaluation import pattern
+    from calib3r_graph.evaluation.evaluate import metric_scale_accuracy
 
     t = time.perf_counter()
     key = tuple(ds.base_T_ee)
@@ -241,7 +241,7 @@ def halves(ds, preds, noise, methods) -> dict:
         errs = errors_against({"methods": {m: a}}, ee_T_cam_by_camera(b["cameras"]))[m] if not bad else {}
         out[m] = {"cameras": {c: {"e_t_m": et, "e_theta_rad": er} for c, (et, er) in errs.items()},
                   "status": "; ".join(bad) or "ok"}
-    from calib3r_graph.consistency import halves_consistency
+    from calib3r_graph.evaluation.consistency import halves_consistency
 
     return {"frames": split, "methods": out, "in_sigmas": halves_consistency(first, second),
             "halves": {"first": first, "second": second}}
