@@ -46,10 +46,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from calib3r_graph.errors import Calib3rError  # noqa: E402
 from calib3r_graph.evaluation.compare import random_subsets, run_method, two_stage_hand_eye  # noqa: E402
+from calib3r_graph.evaluation.consistency import in_sigmas  # noqa: E402
 from calib3r_graph.frontends.pairwise import PairwiseOptions, pairwise_predictions  # noqa: E402
 from calib3r_graph.geometry import pose_error  # noqa: E402
 from calib3r_graph.io.dataset import load_dataset, subset_dataset  # noqa: E402
 from calib3r_graph.io.predictions import load_predictions, read_poses_csv  # noqa: E402
+from calib3r_graph.io.results import uncertainty_report  # noqa: E402
 from calib3r_graph.solver.graph import NoiseOptions  # noqa: E402
 from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
 
@@ -60,6 +62,7 @@ LABELS = {"pairwise": "calib3r-graph, pairwise frontend", "colmap": "calib3r-gra
           "jcr-predictions": "jcr-predictions (pairwise)", "jcr-colmap": "jcr-colmap",
           "park": "park (board; vs its own full result)", "pattern-ba": "pattern-ba (board; vs its own full result)"}
 SOLVER_NOISE = {}  # --noise overrides of the solver's NoiseOptions (for experiments; default: none)
+RUN_FIELDS = 2  # bump when run_pairwise records new fields, so cached runs are recomputed
 FAILURES = (Calib3rError, RuntimeError, ValueError, np.linalg.LinAlgError)
 
 
@@ -106,8 +109,18 @@ def run_pairwise(ds, frames, opt, cache):
     preds = pairwise_predictions(sub, None, opt, cache, progress=False)
     noise = NoiseOptions(pixel_sigma_px=preds.info["match_noise_px"], **SOLVER_NOISE)
     sol = solve(sub, preds, SolveOptions(noise=noise, progress=False))
+    jk = sol.stats.get("jackknife", {})
     out = {"cameras": _cams(sol.ee_T_cam), "views_used": sol.stats["views_used"],
-           "unusable_views": preds.info["unusable_views"]}
+           "unusable_views": preds.info["unusable_views"],
+           # per-axis sigmas (ee frame): the total, and the modelled one (noise model + robot field) that
+           # the total covers together with the jackknife's spread below JACKKNIFE_BELOW poses
+           "sigma": {c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"] for c, X in sol.ee_T_cam.items()},
+           "sigma_modelled": {c: uncertainty_report(X, np.array(jk[c]["covariance_before"]) if c in jk
+                                                    else sol.covariance[c])["sigma_ee_frame"]
+                              for c, X in sol.ee_T_cam.items()},
+           # the noise model's alone: what the subset's own data can tell, with a perfect robot
+           "sigma_noise_model": {c: uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
+                                 for c, X in sol.ee_T_cam.items()}}
     jcr = _attempt(lambda: {"cameras": _cams(run_method("jcr-predictions", sub, preds, noise)[0])})
     return out, jcr
 
@@ -149,6 +162,27 @@ def errors(result, ref, cam="cam0"):
     return et * 1e3, er
 
 
+def translation_difference(result, ref, cam="cam0"):
+    """ee_T_cam's translation minus the reference's, in the ee frame (mm)."""
+    return ((pose_of(result, cam).translation() - pose_of(ref, cam).translation()) * 1e3).tolist()
+
+
+def shared_with_board(runs, n, other="park"):
+    """Per ee axis, the correlation over the subsets of n views between ours' (pairwise) translation
+    error and a board method's, each against its own full result: the part of the error that comes
+    from the robot poses the subset happens to contain, which no frontend can remove."""
+    by = {}
+    for r in runs:
+        if r["views"] == n and r.get("d_ee_mm") is not None:
+            by.setdefault(r["repeat"], {})[r["method"]] = r["d_ee_mm"]
+    pairs = [(v["pairwise"], v[other]) for v in by.values() if "pairwise" in v and other in v]
+    if len(pairs) < 5:
+        return None
+    a, b = np.array(pairs).transpose(1, 0, 2)
+    return {"subsets": len(pairs), "correlation": [float(np.corrcoef(a[:, i], b[:, i])[0, 1]) for i in range(3)],
+            "rms_ours_mm": np.sqrt((a ** 2).mean(0)).tolist(), "rms_board_mm": np.sqrt((b ** 2).mean(0)).tolist()}
+
+
 def bench_recording(name, args, opt):
     ds = load_dataset(Path(args.work) / name)
     cache = Path(args.cache) / name
@@ -156,8 +190,9 @@ def bench_recording(name, args, opt):
     # the runs' key: the options and the frontend's and solver's code (an edit re-runs the subsets;
     # features and pair geometries have their own keys in the frontend's cache)
     code = b"".join((ROOT / f).read_bytes()
-                     for f in ("calib3r_graph/frontends/pairwise.py", "calib3r_graph/solver/solve.py"))
-    digest = hashlib.sha1(json.dumps([dataclasses.asdict(opt), SOLVER_NOISE], sort_keys=True).encode()
+                     for f in ("calib3r_graph/frontends/pairwise.py", "calib3r_graph/solver/solve.py",
+                               "calib3r_graph/solver/jackknife.py", "calib3r_graph/solver/init.py"))
+    digest = hashlib.sha1(json.dumps([dataclasses.asdict(opt), SOLVER_NOISE, RUN_FIELDS], sort_keys=True).encode()
                           + code).hexdigest()[:10]
     log.info("%s: %d frames", name, len(ds.frames))
 
@@ -207,15 +242,29 @@ def bench_recording(name, args, opt):
                     got[m] = store.get(f"{m} {','.join(frames)}", lambda: pattern(m, frames))
             for m, res in got.items():
                 e = errors(res, full[m] if m in PATTERN else ref) if res["status"] == "ok" else None
-                runs.append({"views": n, "repeat": r, "frames": frames, "method": m, "status": res["status"],
+                sig = _in_own_sigmas(res, ref) if m == "pairwise" and e else {}
+                if m == "pairwise" and e and "sigma_noise_model" in res:
+                    sig["sigma_noise_model_mm"] = [res["sigma_noise_model"]["cam0"][a] for a in ("x_mm", "y_mm", "z_mm")]
+                runs.append({"views": n, "repeat": r, "frames": frames, "method": m, "status": res["status"], **sig,
                              "e_t_mm": e[0] if e else None, "e_theta_deg": e[1] if e else None,
                              "e_full_colmap": errors(res, full["colmap"]) if "colmap" in full and e else None,
+                             "d_ee_mm": translation_difference(res, full[m] if m in PATTERN else ref) if e else None,
                              "seconds": res.get("seconds")})
         log.info("%s: %d views, %d subsets, %.0f s", name, n, len(subsets), time.perf_counter() - t0)
     return {"frames": len(ds.frames), "full": full, "runs": runs,
             "full_vs_reference": {m: errors(r, ref) for m, r in full.items() if r.get("status") == "ok"},
             "full_vs_pattern_ba": {m: errors(r, full["pattern-ba"]) for m, r in full.items()
                                    if r.get("status") == "ok" and full["pattern-ba"].get("status") == "ok"}}
+
+
+def _in_own_sigmas(res, ref, cam="cam0") -> dict:
+    """The largest per-axis |difference| to the full result in sigmas of the difference (the subset's
+    sigma and the full result's combined), with the total sigma and with the modelled one."""
+    if "sigma" not in res or "sigma" not in ref:
+        return {}
+    A, B = pose_of(res, cam), pose_of(ref, cam)
+    return {f"max_sigma{k[5:]}": in_sigmas(A, res[k][cam], B, ref["sigma"][cam])["max_ratio"]
+            for k in ("sigma", "sigma_modelled")}
 
 
 def _pair_of(fn):
@@ -245,7 +294,19 @@ def summarise(runs, method, n):
             "p90_deg": float(np.percentile(er, 90)) if len(ok) else None,
             # of all subsets (a failure counts as outside)
             "within_5mm_03deg": float(np.sum((et <= 5) & (er <= 0.3)) / len(rs)),
-            "within_3mm_02deg": float(np.sum((et <= 3) & (er <= 0.2)) / len(rs))}
+            "within_3mm_02deg": float(np.sum((et <= 3) & (er <= 0.2)) / len(rs)),
+            # of the solved subsets with sigmas: every axis within 3 sigma of the difference to the full result
+            "within_3sigma": _share([r.get("max_sigma") for r in ok]),
+            "within_3sigma_modelled": _share([r.get("max_sigma_modelled") for r in ok]),
+            # the median over subsets of the noise model's sigma per ee axis (x, y, z): a lower bound
+            # on the error along each axis that the subset's own data allow
+            "median_sigma_noise_model_mm": (np.median([r["sigma_noise_model_mm"] for r in ok], axis=0).tolist()
+                                            if ok and all("sigma_noise_model_mm" in r for r in ok) else None)}
+
+
+def _share(ratios):
+    ratios = [x for x in ratios if x is not None]
+    return float(np.mean(np.array(ratios) <= 3)) if ratios else None
 
 
 def plot(name, res, views, path):
@@ -295,7 +356,8 @@ def plot(name, res, views, path):
 
 def markdown(results, views):
     lines = ["| recording | views | method | solved | median e_t (mm) | median e_θ (°) | 90 % e_t (mm) | "
-             "90 % e_θ (°) | within 5 mm / 0.3° |", "|---|---|---|---|---|---|---|---|---|"]
+             "90 % e_θ (°) | within 5 mm / 0.3° | within 3σ: modelled → total |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, res in results.items():
         for n in views:
             for m in METHODS:
@@ -303,9 +365,23 @@ def markdown(results, views):
                 if s is None:
                     continue
                 f = (lambda v, p: "–" if v is None else f"{v:.{p}f}")
+                cover = "–" if s["within_3sigma"] is None else \
+                    f"{100 * s['within_3sigma_modelled']:.0f} % → {100 * s['within_3sigma']:.0f} %"
                 lines.append(f"| {name} | {n} | {m} | {s['solved']}/{s['subsets']} | {f(s['median_mm'], 2)} | "
                              f"{f(s['median_deg'], 3)} | {f(s['p90_mm'], 2)} | {f(s['p90_deg'], 3)} | "
-                             f"{100 * s['within_5mm_03deg']:.0f} % |")
+                             f"{100 * s['within_5mm_03deg']:.0f} % | {cover} |")
+    lines += ["", "Ours (pairwise) per ee axis x / y / z: the median over subsets of the noise model's own sigma (what "
+              "the subset's data allow even with a perfect robot); the correlation of ours' and park's subset "
+              "translation errors, each against its own full result (the share of the robot poses the subset "
+              "happens to contain); and the rms of both.", "",
+              "| recording | views | σ noise model (mm) | correlation with park | rms ours (mm) | rms park (mm) |",
+              "|---|---|---|---|---|---|"]
+    j = (lambda v, p: "–" if v is None else " / ".join(f"{x:.{p}f}" for x in v))
+    for name, res in results.items():
+        for n in views:
+            s, c = summarise(res["runs"], "pairwise", n), shared_with_board(res["runs"], n) or {}
+            lines.append(f"| {name} | {n} | {j(s and s.get('median_sigma_noise_model_mm'), 1)} | "
+                         f"{j(c.get('correlation'), 2)} | {j(c.get('rms_ours_mm'), 1)} | {j(c.get('rms_board_mm'), 1)} |")
     lines += ["", "| recording | full recording, method | vs full pairwise (mm, °) | vs pattern-ba (mm, °) |",
               "|---|---|---|---|"]
     for name, res in results.items():

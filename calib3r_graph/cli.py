@@ -55,10 +55,6 @@ def cmd_solve(args):
     from calib3r_graph.io.results import write_results
 
     ds, preds, opt, sol = _solve_dataset(args)
-    if args.jackknife:
-        from calib3r_graph.solver.jackknife import jackknife
-
-        sol.stats["jackknife"] = jackknife(ds, preds, opt, sol, progress=not args.quiet)
     out = _out_dir(args)
     report = None
     if not args.no_report:
@@ -111,7 +107,8 @@ def _solve_dataset(args):
     preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
                        irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
-                       reprojection=args.reprojection, init=args.init)
+                       reprojection=args.reprojection, init=args.init, jackknife=args.jackknife,
+                       progress=not args.quiet)
     return ds, preds, opt, solve(ds, preds, opt)
 
 
@@ -399,6 +396,10 @@ def _add_solve_args(s):
     g.add_argument("--init", choices=["predictions", "colmap"], default="predictions",
                    help="visual initialisation: pairwise Sim(3) + spanning tree, or COLMAP's poses "
                         "(predictions made by the colmap frontend)")
+    g.add_argument("--jackknife", choices=["auto", "always", "never"], default="auto",
+                   help="leave-one-pose-out solves (n extra) whose spread the total covariance covers; "
+                        "auto: below 15 robot poses, where the robot's error field cannot be measured "
+                        "(default: auto)")
     g.add_argument("--reprojection", action="store_true",
                    help="add 2D reprojection factors (double-counts match noise; off by default)")
     _add_noise_args(s)
@@ -415,8 +416,6 @@ def build_parser():
     _add_solve_args(s)
     s.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
     s.add_argument("--no-report", action="store_true", help="skip report.html")
-    s.add_argument("--jackknife", action="store_true",
-                   help="cross-check the covariance with leave-one-pose-out solves (n extra solves)")
     s.set_defaults(func=cmd_solve)
 
     pl = sub.add_parser("plan", help="rank candidate robot poses by expected information gain")

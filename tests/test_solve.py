@@ -107,6 +107,12 @@ def test_sample_dataset_via_cli(tmp_path, capsys):
         assert c["metric_scale"] == pytest.approx(truth, rel=0.01)
     errs = hand_eye_errors({c: np.array(v["T_ee_cam"]) for c, v in calib["cameras"].items()}, gt)
     assert_accuracy(errs, mm=2.0, deg=0.15)
+    # 8 poses, below 15: the total covers the leave-one-pose-out jackknife (solver/jackknife.py)
+    assert "the total covers the jackknife of 8 leave-one-pose-out solves" in stdout
+    for cam, jk in calib["solver"]["jackknife"].items():
+        total, before = np.array(calib["cameras"][cam]["covariance"]), np.array(jk["covariance_before"])
+        assert jk["solves"] == 8 and np.linalg.eigvalsh(total - before).min() > -1e-15
+        assert np.linalg.eigvalsh(total - np.array(jk["covariance"])).min() > -1e-15
     rows = (out / "trajectory.csv").read_text().splitlines()
     assert rows[0] == "camera,frame,x,y,z,qx,qy,qz,qw" and len(rows) == 1 + 16
     # trajectory matches the true camera poses
@@ -121,6 +127,22 @@ def test_sample_dataset_via_cli(tmp_path, capsys):
     near_table = pts[np.abs(pts[:, 2]) < 0.01]
     assert len(near_table) > 0.2 * len(pts)
     assert np.median(np.abs(near_table[:, 2])) < 1.5e-3
+
+
+def test_jackknife_never_reports_the_modelled_covariance(tmp_path, capsys):
+    """--jackknife never: no leave-one-pose-out solves, and the total is the modelled covariance,
+    which the default's total (8 poses: the jackknife runs) covers."""
+    calib = {}
+    for mode in ("never", "auto"):
+        out = tmp_path / mode
+        assert main(["solve", str(SAMPLE), "--out", str(out), "--no-cloud", "--no-report", "--jackknife", mode]) == 0
+        calib[mode] = json.loads((out / "calibration.json").read_text())
+    assert "jackknife" not in calib["never"]["solver"] and "jackknife" in calib["auto"]["solver"]
+    for cam, c in calib["never"]["cameras"].items():
+        assert calib["never"]["solver"]["systematic"][cam]["measured"]  # 8 poses: the field is measured
+        never, auto = np.array(c["covariance"]), np.array(calib["auto"]["cameras"][cam]["covariance"])
+        np.testing.assert_allclose(never, calib["auto"]["solver"]["jackknife"][cam]["covariance_before"], rtol=1e-6)
+        assert np.linalg.eigvalsh(auto - never).min() > -1e-15 and np.trace(auto) > 1.1 * np.trace(never)
 
 
 def test_reprojection_option_keeps_the_accuracy():

@@ -171,20 +171,24 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
         if c in sol.covariance_model:
             mod = uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
             sysm = sol.systematic[c]
+            field = (f"robot error field {sysm.gradient_mm_per_m:.2f} mm/m, {sysm.gradient_deg_per_m:.3f} deg/m"
+                     if sysm.measured else f"robot error field not measurable from {sysm.poses} poses")
+            jk = sol.stats.get("jackknife", {}).get(c)
             lines.append(f"        of which noise model t = [{mod['x_mm']:.2f} {mod['y_mm']:.2f} {mod['z_mm']:.2f}] mm, "
-                         f"r = [{mod['rx_deg']:.3f} {mod['ry_deg']:.3f} {mod['rz_deg']:.3f}] deg; the rest: robot "
-                         f"error field {sysm.gradient_mm_per_m:.2f} mm/m, {sysm.gradient_deg_per_m:.3f} deg/m")
+                         f"r = [{mod['rx_deg']:.3f} {mod['ry_deg']:.3f} {mod['rz_deg']:.3f}] deg; the rest: {field}"
+                         + (f"; the total covers the jackknife of {jk['solves']} leave-one-pose-out solves" if jk else ""))
     for c, X in sol.ee_T_cam.items():
         corr = uncertainty_report(X, sol.covariance[c])["strongest_correlations"][0]
         lines.append(f"  {c}: strongest correlation {corr['axes'][0]}-{corr['axes'][1]} {corr['rho']:+.2f}")
     lines += [f"  ! {m}" for m in sol.diagnostics]
     for c, jk in sol.stats.get("jackknife", {}).items():
         r = jk["ratio_to_reported"]
-        lines.append(f"  {c}: jackknife ({jk['solves']} solves) / reported sigma: rotation "
+        lines.append(f"  {c}: jackknife ({jk['solves']} solves) / modelled sigma: rotation "
                      f"{r[0]:.1f} {r[1]:.1f} {r[2]:.1f}, translation {r[3]:.1f} {r[4]:.1f} {r[5]:.1f}")
     tm = sol.stats["timings_s"]
     lines.append(f"  time: init {tm['initialisation']:.1f} s, optimisation {tm['optimisation']:.1f} s, "
-                 f"covariance {tm['covariance']:.1f} s; LM iterations "
+                 f"covariance {tm['covariance']:.1f} s"
+                 + (f", jackknife {tm['jackknife']:.1f} s" if "jackknife" in tm else "") + "; LM iterations "
                  f"{'+'.join(str(r['iterations']) for r in sol.stats['rounds'])}")
     return "\n".join(lines) + "\n"
 

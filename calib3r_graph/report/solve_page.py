@@ -109,12 +109,18 @@ def _calibration_section(page, cams, st):
         rows = [[k] + [fmt(s[key], ".3f") for key in SIGMA_KEYS] for k, s in kinds]
         if c in jk:
             ratio = np.array(jk[c]["ratio_to_reported"])[[3, 4, 5, 0, 1, 2]]  # tangent order [r; t] -> the columns
-            rows.append(["jackknife / reported"] + [fmt(r, ".2f") for r in ratio])
+            rows.append(["jackknife / modelled"] + [fmt(r, ".2f") for r in ratio])
         page.table(["ee frame", "x (mm)", "y (mm)", "z (mm)", "rx (°)", "ry (°)", "rz (°)"], rows)
         corr = "; ".join(f"{a['axes'][0]}-{a['axes'][1]} {a['rho']:+.2f}" for a in cal["strongest_correlations"])
         page.p(f"Strongest correlations: {corr}.")
         sysc = st.get("systematic", {}).get(c)
-        if sysc and "position_mm_per_m" in sysc:
+        if c in jk:
+            page.p(f"σ total covers the spread of {jk[c]['solves']} leave-one-pose-out solves (the jackknife; "
+                   "it runs by default below 15 robot poses, where the robot's error field is poorly measured "
+                   "or not at all). The ratio row compares it with the modelled σ (noise model + field).")
+        if sysc and sysc.get("measured") is False:
+            page.p("The robot's error field is not measurable from so few poses.")
+        elif sysc and "position_mm_per_m" in sysc:
             page.p(f"Systematic part of σ total: robot error field {sysc['position_mm_per_m']:.2f} mm/m and "
                    f"{sysc['position_mm_per_deg']:.3f} mm/° in position, {sysc['orientation_deg_per_m']:.3f} °/m and "
                    f"{sysc['orientation_deg_per_deg']:.4f} °/° in orientation ({sysc.get('model', '')}).")

@@ -27,6 +27,11 @@ from calib3r_graph.io.predictions import split_view_id
 
 log = logging.getLogger(__name__)
 
+# Pure translations enter the hand-eye rotation as unit directions at the weight of a 0.1 rad
+# rotation axis: they determine R_X about an axis that the rotations leave free and hardly move it
+# where the rotations determine it (the solve refines it either way).
+TRANSLATION_WEIGHT = 0.1
+
 MIN_INLIERS = 15
 
 
@@ -110,7 +115,7 @@ def hand_eye_closed_form(comps, base_T_ee, robot_file="robot_poses.csv", max_pai
     cameras = sorted({split_view_id(v)[0] for c in comps for v in c})
     R_X = {}
     for cam in cameras:
-        alphas, alphas_inv, betas = [], [], []
+        alphas, alphas_inv, betas, dirs_a, dirs_b = [], [], [], [], []
         for c, pairs in zip(comps, comp_pairs):
             for a, b in pairs:
                 if split_view_id(a)[0] != cam:
@@ -119,16 +124,27 @@ def hand_eye_closed_form(comps, base_T_ee, robot_file="robot_poses.csv", max_pai
                 B = c[a][0].between(c[b][0])
                 beta = gtsam.Rot3.Logmap(B.rotation())
                 if np.linalg.norm(beta) < np.radians(1.0):
-                    continue  # pure translations carry no rotation information
+                    # A pure translation has no axis, but t_A = s R_X t_B: its direction constrains R_X
+                    # (what a single rotation axis leaves free, e.g. once the frontend drops a view).
+                    A = E1.between(E2)
+                    t_a, t_b = A.translation(), B.translation()
+                    if (np.linalg.norm(gtsam.Rot3.Logmap(A.rotation())) < np.radians(1.0)
+                            and np.linalg.norm(t_a) > 0 and np.linalg.norm(t_b) > 0):
+                        dirs_a.append(t_a / np.linalg.norm(t_a))
+                        dirs_b.append(t_b / np.linalg.norm(t_b))
+                    continue
                 alphas.append(gtsam.Rot3.Logmap(E1.between(E2).rotation()))
                 alphas_inv.append(gtsam.Rot3.Logmap(E1.compose(E2.inverse()).rotation()))
                 betas.append(beta)
-        if len(betas) < 2:
+        if len(betas) < 1 or len(betas) + len(dirs_a) < 2:
             raise SolveError(f"camera {cam}: fewer than two robot motions with rotation between co-visible "
                              "views; add poses that rotate the flange about different axes")
         alphas, alphas_inv, betas = map(np.array, (alphas, alphas_inv, betas))
         R, res = hand_eye_rotation(alphas, betas)
         _, res_inv = hand_eye_rotation(alphas_inv, betas)
+        if dirs_a:
+            R, _ = hand_eye_rotation(np.vstack([alphas, TRANSLATION_WEIGHT * np.array(dirs_a)]),
+                                     np.vstack([betas, TRANSLATION_WEIGHT * np.array(dirs_b)]))
         log.info("camera %s: hand-eye rotation from %d motions, axis residual %.3f deg (inverted poses: %.3f deg)",
                  cam, len(betas), res, res_inv)
         if res > 1.0 and res_inv < 0.3 * res:

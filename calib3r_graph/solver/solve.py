@@ -22,6 +22,7 @@ from calib3r_graph.solver.graph import (Keys, NoiseOptions, add_depth_correction
                                  add_scale_gauge_factors, add_scene_factors, depth_correction, initial_values,
                                  match_residuals, point_sqrt_info, robot_chi2, robot_views)
 from calib3r_graph.solver.init import initialise
+from calib3r_graph.solver.jackknife import cover, jackknife, wanted
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.systematic import systematic_errors
 from calib3r_graph.solver.uncertainty import (check_motion, covariance_diagnostics, motion_diagnostics,
@@ -46,6 +47,9 @@ class SolveOptions:
     max_iterations: int = 50
     reprojection: bool = False  # see factors/reprojection.py: double-counts the match noise
     seed: int = 0
+    # leave-one-pose-out solves whose spread the total covariance must cover (jackknife.py):
+    # "auto" below JACKKNIFE_BELOW robot poses, "always", "never"
+    jackknife: str = "auto"
 
 
 @dataclass
@@ -178,8 +182,9 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
             chi2, n_frames = robot_chi2(keys, views, ds.base_T_ee, values, opt.noise)
             robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
             if robot_factor > 1.0:
-                log.warning("robot poses are %.1fx noisier than --robot-sigma-mm/-deg say (%.2g mm, %.2g deg): "
-                            "using %.2g mm, %.2g deg", np.sqrt(robot_factor), opt.noise.robot_sigma_mm,
+                log.warning("the robot poses and the images disagree %.1fx more than --robot-sigma-mm/-deg allow "
+                            "(%.2g mm, %.2g deg): either the arm is that much noisier, or a view's geometry is "
+                            "wrong; using %.2g mm, %.2g deg", np.sqrt(robot_factor), opt.noise.robot_sigma_mm,
                             opt.noise.robot_sigma_deg, opt.noise.robot_sigma_mm * np.sqrt(robot_factor),
                             opt.noise.robot_sigma_deg * np.sqrt(robot_factor))
             noise = dataclasses.replace(opt.noise, robot_sigma_mm=opt.noise.robot_sigma_mm * np.sqrt(robot_factor),
@@ -201,7 +206,8 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
         from calib3r_graph.errors import library_error
 
         cause = (library_error(e) or (next(iter(str(e).strip().splitlines()), ""), 0))[0]
-        raise SolveError(f"the calibration is not observable from this data ({cause})") from None
+        raise SolveError(f"the calibration is not observable from this data ({cause})"
+                         + _unobservable_because(ds, preds, views)) from None
     covariance_model = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
     # The systematic part: a kinematic error field measured from the robot residuals (systematic.py).
     robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), ds.base_T_ee[split_view_id(v)[1]])
@@ -217,11 +223,6 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     used_frames = {split_view_id(v)[1] for v in views}
     diagnostics = motion_diagnostics(ds.base_T_ee, used_frames)
     gain, gain_axis = systematic_error_gain(ds.base_T_ee, used_frames)
-    for c in cameras:
-        diagnostics += covariance_diagnostics(c, values.atPose3(keys.hand_eye(c)), covariance[c])
-    for msg in diagnostics:
-        log.warning("%s", msg)
-
     residuals = np.concatenate([np.linalg.norm(e, axis=1) for e in match_residuals(observations, values, keys)])
     stats_out = {"rounds": history, "timings_s": timings,
                  "noise_calibration": {"variance_factor": sigma0_sq, "design_effect": kappa,
@@ -236,7 +237,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                  # mm of ee_T_cam translation per mm of systematic relative-translation error (uncertainty.py)
                  "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": gain_axis.tolist()},
                  "systematic": {c: systematic[c].to_json() for c in cameras}}
-    return Solution(
+    sol = Solution(
         ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras},
         covariance=covariance, covariance_model=covariance_model, systematic=systematic, metric_scale=metric,
         base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
@@ -245,3 +246,35 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
         init_ee_T_cam=init.ee_T_cam, stats=stats_out, views_dropped=init.dropped_views, diagnostics=diagnostics,
         graph=graph, values=values, keys=keys, observations=observations,
         scene_weight_scale=1.0 / (sigma0_sq * kappa))
+    if wanted(opt.jackknife, len(used_frames)):
+        t = time.perf_counter()
+        _cover_with_jackknife(ds, preds, opt, sol)
+        timings["jackknife"] = time.perf_counter() - t
+    for c in cameras:
+        diagnostics += covariance_diagnostics(c, sol.ee_T_cam[c], sol.covariance[c])
+    for msg in diagnostics:
+        log.warning("%s", msg)
+    return sol
+
+
+def _unobservable_because(ds, preds, views) -> str:
+    """What the used views' motion lacks, in words, and the views the frontend could not use (the
+    rest may rotate about one axis only although the recording did not)."""
+    frames = {split_view_id(v)[1] for v in views}
+    motion = [m for m in motion_diagnostics(ds.base_T_ee, frames) if "axes" in m or "rotates less" in m]
+    dropped = list(preds.info.get("unusable_views", [])) + [v for v in preds.views if v not in views]
+    out = "".join(f"; {m}" for m in motion)
+    if dropped:
+        out += f"; the frontend could not use {', '.join(sorted(set(dropped)))}"
+    return out
+
+
+def _cover_with_jackknife(ds, preds, opt, sol):
+    """Leave-one-pose-out solves; each camera's total covariance becomes the cover of the modelled
+    one and the jackknife's (jackknife.cover), and solver.jackknife records both."""
+    jk = jackknife(ds, preds, opt, sol, solve, progress=opt.progress)
+    for c, rep in jk.items():
+        before = np.asarray(sol.covariance[c])
+        sol.covariance[c] = cover(before, np.asarray(rep["covariance"]))
+        rep["covariance_before"] = before.tolist()
+    sol.stats["jackknife"] = jk

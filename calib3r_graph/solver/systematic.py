@@ -34,6 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+FIELD_MIN_POSES = 8  # below this the field is not measured (taken as zero; solve's jackknife covers it)
+
 
 @dataclass
 class SystematicError:
@@ -42,6 +44,11 @@ class SystematicError:
     tau: np.ndarray  # [[position m/m, m/rad], [orientation rad/m, rad/rad]]: rms of a gradient entry
     white_mm: float  # per-axis sigma of the white part of the position residual
     poses: int
+
+    @property
+    def measured(self) -> bool:
+        """False when there were too few poses to measure the field (it is then taken as zero)."""
+        return bool(np.isfinite(self.white_mm))
 
     @property
     def gradient_mm_per_m(self) -> float:
@@ -55,7 +62,8 @@ class SystematicError:
         t = np.asarray(self.tau)
         return {"position_mm_per_m": float(t[0, 0] * 1e3), "position_mm_per_deg": float(t[0, 1] * 1e3 * np.pi / 180),
                 "orientation_deg_per_m": float(np.degrees(t[1, 0])), "orientation_deg_per_deg": float(t[1, 1]),
-                "white_mm": self.white_mm, "scale_sigma_rel": self.scale_sigma_rel, "poses": self.poses,
+                "white_mm": self.white_mm if self.measured else None, "measured": self.measured,
+                "scale_sigma_rel": self.scale_sigma_rel, "poses": self.poses,
                 "model": "flange position and orientation errors linear in the flange's position and orientation "
                          "(a kinematic error), measured from the robot residuals, propagated through the solved graph"}
 
@@ -118,7 +126,7 @@ def measure_field(base_T_ee: list, base_T_cam: list, ee_T_cam) -> tuple[np.ndarr
     import gtsam
 
     n = len(base_T_ee)
-    if n < 8:  # 7 unknowns and 2 x 9 field directions need more residual than this
+    if n < FIELD_MIN_POSES:  # 7 unknowns and 2 x 9 field directions need more residual than this
         return np.zeros((2, 2)), float("nan")
     R_ee = np.array([E.rotation().matrix() for E in base_T_ee])
     t_ee = np.array([E.translation() for E in base_T_ee])

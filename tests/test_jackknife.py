@@ -1,0 +1,79 @@
+"""The leave-one-pose-out jackknife that the total covariance covers when the robot's error
+field cannot be measured (few poses), and the cover of two covariances."""
+
+import shutil
+
+import gtsam
+import numpy as np
+import pytest
+
+from calib3r_graph.io.dataset import (load_dataset, load_ground_truth, read_robot_poses, subset_dataset,
+                                      write_robot_poses)
+from calib3r_graph.io.predictions import load_predictions, subset_predictions
+from calib3r_graph.io.results import summary_text
+from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW, cover, wanted
+from calib3r_graph.solver.solve import SolveOptions, solve
+from tests.conftest import SAMPLE
+from tests.test_systematic import with_errors
+
+
+def _psd(M, tol=1e-12):
+    return np.linalg.eigvalsh(0.5 * (M + M.T)).min() >= -tol * max(1.0, np.abs(M).max())
+
+
+def test_cover_covers_both_and_is_the_larger_where_one_dominates():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        G, H = rng.normal(size=(6, 6)), rng.normal(size=(6, 4))
+        A, B = G @ G.T + 1e-3 * np.eye(6), H @ H.T  # B rank-deficient, as a jackknife of 5 solves is
+        C = cover(A, B)
+        assert _psd(C - A) and _psd(C - B)
+    A = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    np.testing.assert_allclose(cover(A, 0.5 * A), A, atol=1e-12)
+    np.testing.assert_allclose(cover(A, 2.0 * A), 2.0 * A, atol=1e-12)
+
+
+def test_when_the_jackknife_runs():
+    assert wanted("auto", JACKKNIFE_BELOW - 1) and not wanted("auto", JACKKNIFE_BELOW)
+    assert wanted("always", 100) and not wanted("never", 3)
+    with pytest.raises(ValueError):
+        wanted("sometimes", 3)
+
+
+@pytest.mark.slow
+def test_few_poses_with_a_kinematic_field_the_total_covers_the_jackknife(tmp_path):
+    """Six poses of the sample with a 3 mm/m kinematic error: too few to measure the field, so
+    without the jackknife the total is the noise model's and the error against ground truth is
+    far outside it (NEES 13-47 for these seeds). With it (the default below 15 poses) the total
+    covers the jackknife's spread and the NEES falls by more than half."""
+    nees = {"never": [], "auto": []}
+    for seed in range(3):
+        root = tmp_path / f"s{seed}"
+        shutil.copytree(SAMPLE, root)
+        ds = load_dataset(root)
+        poses = read_robot_poses(root / "robot_poses.csv", ds.robot_unit)
+        frames = sorted(poses)
+        moved = with_errors([poses[f] for f in frames], np.random.default_rng(seed), 3.0, 0.0)
+        write_robot_poses(root / "robot_poses.csv", dict(zip(frames, moved)), unit=ds.robot_unit)
+        ds = load_dataset(root)
+        preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+        sub, sub_preds = subset_dataset(ds, frames[:6]), subset_predictions(preds, frames[:6])
+        gt = load_ground_truth(root)["hand_eye"]
+        for mode in nees:
+            sol = solve(sub, sub_preds, SolveOptions(progress=False, jackknife=mode))
+            for c, X in sol.ee_T_cam.items():
+                assert not sol.systematic[c].measured
+                if mode == "never":
+                    assert "jackknife" not in sol.stats
+                    np.testing.assert_allclose(sol.covariance[c], sol.covariance_model[c])
+                else:
+                    jk = sol.stats["jackknife"][c]
+                    assert jk["solves"] >= 5
+                    assert _psd(sol.covariance[c] - np.array(jk["covariance_before"]), 1e-9)
+                    assert _psd(sol.covariance[c] - np.array(jk["covariance"]), 1e-9)
+                    assert (f"robot error field not measurable from 6 poses; the total covers the jackknife of "
+                            f"{jk['solves']} leave-one-pose-out solves") in summary_text(sol, sub, sub_preds.name)
+                xi = gtsam.Pose3.Logmap(gt[c].between(X))
+                nees[mode].append(float(xi @ np.linalg.solve(sol.covariance[c], xi)))
+    assert np.mean(nees["never"]) > 16.8  # chi2_6 99 %: the noise model alone is over-confident
+    assert np.mean(nees["auto"]) < 0.5 * np.mean(nees["never"]), nees
