@@ -200,15 +200,16 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     timings["optimisation"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    try:
+    try:  # any of these can find the system indeterminate (gtsam) or singular (the field's Hessian)
         marginals = gtsam.Marginals(graph, values)
+        covariance_model = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
+        scale_variance = {c: float(marginals.marginalCovariance(keys.metric(c))[0, 0]) for c in cameras}
     except RuntimeError as e:
         from calib3r_graph.errors import library_error
 
         cause = (library_error(e) or (next(iter(str(e).strip().splitlines()), ""), 0))[0]
         raise SolveError(f"the calibration is not observable from this data ({cause})"
                          + _unobservable_because(ds, preds, views)) from None
-    covariance_model = {c: marginals.marginalCovariance(keys.hand_eye(c)) for c in cameras}
     # The systematic part: a kinematic error field measured from the robot residuals (systematic.py).
     robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), ds.base_T_ee[split_view_id(v)[1]])
              for v in robot_views(keys, views)]
@@ -217,7 +218,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     metric = {}
     for c in cameras:
         lam = values.atDouble(keys.metric(c))
-        sigma_model = float(np.sqrt(marginals.marginalCovariance(keys.metric(c))[0, 0]))
+        sigma_model = float(np.sqrt(scale_variance[c]))
         metric[c] = (lam, float(np.hypot(sigma_model, lam * systematic[c].scale_sigma_rel)))
     timings["covariance"] = time.perf_counter() - t
     used_frames = {split_view_id(v)[1] for v in views}
