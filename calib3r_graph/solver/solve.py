@@ -181,6 +181,8 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
             # world's similarity). Real arms are often worse than their spec; never better.
             chi2, n_frames = robot_chi2(keys, views, ds.base_T_ee, values, opt.noise)
             robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
+            if not np.isfinite(robot_factor):  # a zero robot sigma: the marginals below report it
+                robot_factor = 1.0
             if robot_factor > 1.0:
                 log.warning("the robot poses and the images disagree %.1fx more than --robot-sigma-mm/-deg allow "
                             "(%.2g mm, %.2g deg): either the arm is that much noisier, or a view's geometry is "
