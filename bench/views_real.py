@@ -62,7 +62,7 @@ LABELS = {"pairwise": "calib3r-graph, pairwise frontend", "colmap": "calib3r-gra
           "jcr-predictions": "jcr-predictions (pairwise)", "jcr-colmap": "jcr-colmap",
           "park": "park (board; vs its own full result)", "pattern-ba": "pattern-ba (board; vs its own full result)"}
 SOLVER_NOISE = {}  # --noise overrides of the solver's NoiseOptions (for experiments; default: none)
-RUN_FIELDS = 2  # bump when run_pairwise records new fields, so cached runs are recomputed
+RUN_FIELDS = 3  # bump when run_pairwise records new fields, so cached runs are recomputed
 FAILURES = (Calib3rError, RuntimeError, ValueError, np.linalg.LinAlgError)
 
 
@@ -118,6 +118,9 @@ def run_pairwise(ds, frames, opt, cache):
            "sigma_modelled": {c: uncertainty_report(X, np.array(jk[c]["covariance_before"]) if c in jk
                                                     else sol.covariance[c])["sigma_ee_frame"]
                               for c, X in sol.ee_T_cam.items()},
+           # the pose the jackknife's data snooping names (solver/jackknife.influential_pose), if any
+           "influential_pose": next((r["influential_pose"]["frame"] for r in jk.values()
+                                     if r.get("influential_pose")), None),
            # the noise model's alone: what the subset's own data can tell, with a perfect robot
            "sigma_noise_model": {c: uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
                                  for c, X in sol.ee_T_cam.items()}}
@@ -243,6 +246,8 @@ def bench_recording(name, args, opt):
             for m, res in got.items():
                 e = errors(res, full[m] if m in PATTERN else ref) if res["status"] == "ok" else None
                 sig = _in_own_sigmas(res, ref) if m == "pairwise" and e else {}
+                if m == "pairwise" and res["status"] == "ok":
+                    sig["influential_pose"] = res.get("influential_pose")
                 if m == "pairwise" and e and "sigma_noise_model" in res:
                     sig["sigma_noise_model_mm"] = [res["sigma_noise_model"]["cam0"][a] for a in ("x_mm", "y_mm", "z_mm")]
                 runs.append({"views": n, "repeat": r, "frames": frames, "method": m, "status": res["status"], **sig,
@@ -300,6 +305,7 @@ def summarise(runs, method, n):
             "within_3sigma_modelled": _share([r.get("max_sigma_modelled") for r in ok]),
             # the median over subsets of the noise model's sigma per ee axis (x, y, z): a lower bound
             # on the error along each axis that the subset's own data allow
+            "poses_named": [(r["frames"], r["influential_pose"], r["e_t_mm"]) for r in ok if r.get("influential_pose")],
             "median_sigma_noise_model_mm": (np.median([r["sigma_noise_model_mm"] for r in ok], axis=0).tolist()
                                             if ok and all("sigma_noise_model_mm" in r for r in ok) else None)}
 
@@ -374,14 +380,16 @@ def markdown(results, views):
               "the subset's data allow even with a perfect robot); the correlation of ours' and park's subset "
               "translation errors, each against its own full result (the share of the robot poses the subset "
               "happens to contain); and the rms of both.", "",
-              "| recording | views | σ noise model (mm) | correlation with park | rms ours (mm) | rms park (mm) |",
-              "|---|---|---|---|---|---|"]
+              "| recording | views | σ noise model (mm) | correlation with park | rms ours (mm) | rms park (mm) "
+              "| poses named (e_t of the subset) |", "|---|---|---|---|---|---|---|"]
     j = (lambda v, p: "–" if v is None else " / ".join(f"{x:.{p}f}" for x in v))
     for name, res in results.items():
         for n in views:
             s, c = summarise(res["runs"], "pairwise", n), shared_with_board(res["runs"], n) or {}
+            named = ", ".join(f"{f} ({e:.1f} mm)" for _, f, e in (s or {}).get("poses_named", [])) or "none"
             lines.append(f"| {name} | {n} | {j(s and s.get('median_sigma_noise_model_mm'), 1)} | "
-                         f"{j(c.get('correlation'), 2)} | {j(c.get('rms_ours_mm'), 1)} | {j(c.get('rms_board_mm'), 1)} |")
+                         f"{j(c.get('correlation'), 2)} | {j(c.get('rms_ours_mm'), 1)} | {j(c.get('rms_board_mm'), 1)} "
+                         f"| {named} |")
     lines += ["", "| recording | full recording, method | vs full pairwise (mm, °) | vs pattern-ba (mm, °) |",
               "|---|---|---|---|"]
     for name, res in results.items():

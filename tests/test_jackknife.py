@@ -11,7 +11,7 @@ from calib3r_graph.io.dataset import (load_dataset, load_ground_truth, read_robo
                                       write_robot_poses)
 from calib3r_graph.io.predictions import load_predictions, subset_predictions
 from calib3r_graph.io.results import summary_text
-from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW, cover, wanted
+from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW, cover, influential_pose, wanted
 from calib3r_graph.solver.solve import SolveOptions, solve
 from tests.conftest import SAMPLE
 from tests.test_systematic import with_errors
@@ -77,3 +77,29 @@ def test_few_poses_with_a_kinematic_field_the_total_covers_the_jackknife(tmp_pat
                 nees[mode].append(float(xi @ np.linalg.solve(sol.covariance[c], xi)))
     assert np.mean(nees["never"]) > 16.8  # chi2_6 99 %: the noise model alone is over-confident
     assert np.mean(nees["auto"]) < 0.5 * np.mean(nees["never"]), nees
+
+
+def test_influential_pose_is_named_only_when_the_rest_reject_it():
+    # the arm's overall noise cancels: chi2/dof 5 with or without any one pose names nothing
+    assert influential_pose((5.0 * 23, 23), {f: (5.0 * 17, 17) for f in "abcdef"}) is None
+    fits = {f: (4.0 * 17, 17) for f in "abcde"}
+    fits["f"] = (1.0 * 17, 17)  # without f the robot fits 356x better
+    got = influential_pose((356.0 * 23, 23), fits)
+    assert got["frame"] == "f" and got["p"] < 1e-10 and got["chi2_ratio"] == pytest.approx(356.0)
+    assert influential_pose(None, fits) is None
+
+
+@pytest.mark.slow
+def test_a_moved_robot_pose_is_named(tmp_path):
+    """The sample (8 poses, so the jackknife runs) with frame 0003's pose moved by 5 mm: the
+    summary names it (F 96, p 1e-17); the clean sample names nothing (test_solve's CLI test)."""
+    root = tmp_path / "s"
+    shutil.copytree(SAMPLE, root)
+    ds = load_dataset(root)
+    poses = read_robot_poses(root / "robot_poses.csv", ds.robot_unit)
+    poses["0003"] = poses["0003"].compose(gtsam.Pose3(gtsam.Rot3(), np.array([5e-3, 0, 0])))
+    write_robot_poses(root / "robot_poses.csv", poses, unit=ds.robot_unit)
+    ds = load_dataset(root)
+    sol = solve(ds, load_predictions(root, "sim", ds.cameras, set(ds.frames)), SolveOptions(progress=False))
+    named = [d for d in sol.diagnostics if d.startswith("robot pose ")]
+    assert len(named) == 1 and named[0].startswith("robot pose 0003: without it"), sol.diagnostics

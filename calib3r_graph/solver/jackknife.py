@@ -7,6 +7,9 @@ recording's on every axis (95 % with the jackknife; bench/views_real.py). The ja
 each pose in turn. ``solve`` runs it by default below ``JACKKNIFE_BELOW`` poses and reports the
 total covariance as the cover of both (``cover``); ``solve --jackknife always`` runs it at any size.
 
+The same solves name a pose that the rest of the data reject (``influential_pose``: Baarda's
+data snooping on the robot chi2); ``solve`` reports it in words and does not drop it.
+
 The solver is passed in (``solve_fn``), so this module stays below ``solve``.
 """
 
@@ -20,6 +23,8 @@ from calib3r_graph.io.predictions import split_view_id
 # subsets within 3 sigma on every axis is 95 % with the measured field, 100 % with the jackknife.
 JACKKNIFE_BELOW = 15
 AXES = ("rx_deg", "ry_deg", "rz_deg", "x_mm", "y_mm", "z_mm")
+# Baarda's significance for naming a pose that the rest of the data reject (influential_pose)
+ALPHA = 0.001
 
 
 def wanted(mode: str, poses: int) -> bool:
@@ -44,19 +49,25 @@ def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> dict:
 
     frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
     xis = {c: [] for c in sol.ee_T_cam}
+    fits = {}  # frame left out -> (robot chi2, dof) of that solve
     opt = dataclasses.replace(opt, progress=False, jackknife="never")
     package_log = logging.getLogger("calib3r_graph")
     level = package_log.level
     package_log.setLevel(logging.ERROR)  # the sub-solves repeat the main solve's warnings
     try:
-        _leave_one_out(ds, preds, opt, frames, xis, solve_fn, progress)
+        _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress)
     finally:
         package_log.setLevel(level)
-    return _jackknife_report(sol, xis)
+    report = _jackknife_report(sol, xis)
+    suspect = influential_pose(sol.stats.get("noise_calibration", {}).get("robot_chi2_dof"), fits)
+    for rep in report.values():
+        rep["influential_pose"] = suspect
+    return report
 
 
-def _leave_one_out(ds, preds, opt, frames, xis, solve_fn, progress):
-    """Append each leave-one-frame-out solution's ee_T_cam to xis[camera]."""
+def _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress):
+    """Append each leave-one-frame-out solution's ee_T_cam to xis[camera]; fits[frame]: its robot
+    chi2 and degrees of freedom."""
     from tqdm import tqdm
 
     from calib3r_graph.errors import Calib3rError
@@ -72,6 +83,8 @@ def _leave_one_out(ds, preds, opt, frames, xis, solve_fn, progress):
         for c, X in s.ee_T_cam.items():
             if c in xis:
                 xis[c].append(X)
+        if s.stats["noise_calibration"].get("robot_chi2_dof"):
+            fits[f] = s.stats["noise_calibration"]["robot_chi2_dof"]
 
 
 def _sigmas(X, C) -> dict:
@@ -96,6 +109,30 @@ def _jackknife_report(sol, xis) -> dict:
         out[c] = {"solves": n, "covariance": C.tolist(), "sigma_jackknife": jk,
                   "ratio_to_reported": [jk[a] / rep[a] for a in AXES]}
     return out
+
+
+def influential_pose(full, fits: dict, alpha=ALPHA) -> dict | None:
+    """The pose without which the robot and the images agree significantly better, or None.
+
+    Baarda's data snooping on the leave-one-out solves: for the pose k whose removal lowers the
+    robot chi2 most, ``F = ((chi2 - chi2_k) / 6) / (chi2_k / dof_k)`` (6 = the pose's robot
+    residual) is tested against F(6, dof_k) at ``alpha`` over all n poses (Bonferroni). The
+    arm's overall noise level cancels in F; a wrong view or pose does not. ``full``: (chi2, dof)
+    of the full solve; ``fits``: {frame: (chi2, dof)} without each."""
+    from scipy import stats
+
+    if not full or not fits:
+        return None
+    chi2, dof = full
+    frame, (chi2_k, dof_k) = min(fits.items(), key=lambda kv: kv[1][0] / max(kv[1][1], 1))
+    if dof_k < 1 or chi2_k <= 0:
+        return None
+    F = ((chi2 - chi2_k) / 6) / (chi2_k / dof_k)
+    p = float(stats.f.sf(F, 6, dof_k))
+    if p >= alpha / len(fits):
+        return None
+    return {"frame": frame, "F": float(F), "p": p, "chi2_per_dof": chi2 / dof, "chi2_per_dof_without": chi2_k / dof_k,
+            "chi2_ratio": (chi2 / dof) / (chi2_k / dof_k)}
 
 
 def cover(A: np.ndarray, B: np.ndarray) -> np.ndarray:

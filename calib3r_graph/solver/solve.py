@@ -165,7 +165,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                                 opt.noise, np.ones(len(o))) for o in observations]
 
     n_rounds = opt.irls_rounds + 1 + int(opt.noise_calibration)
-    sigma0_sq, kappa, robot_factor = 1.0, 1.0, 1.0
+    sigma0_sq, kappa, robot_factor, robot_fit = 1.0, 1.0, 1.0, None
     noise = opt.noise
     for rnd in range(n_rounds):
         label = f"LM round {rnd + 1}/{n_rounds}"
@@ -181,6 +181,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
             # world's similarity). Real arms are often worse than their spec; never better.
             chi2, n_frames = robot_chi2(keys, views, ds.base_T_ee, values, opt.noise)
             robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
+            robot_fit = (float(chi2), 6 * n_frames - 13)  # under the nominal robot noise
             if not np.isfinite(robot_factor):  # a zero robot sigma: the marginals below report it
                 robot_factor = 1.0
             if robot_factor > 1.0:
@@ -230,6 +231,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     stats_out = {"rounds": history, "timings_s": timings,
                  "noise_calibration": {"variance_factor": sigma0_sq, "design_effect": kappa,
                                        "robot_variance_factor": robot_factor,
+                                       "robot_chi2_dof": robot_fit,
                                        "robot_sigma_used": [noise.robot_sigma_mm, noise.robot_sigma_deg],
                                        "method": "scene information scaled by 1/(variance factor x design effect)"
                                        if opt.noise_calibration else "off"},
@@ -276,6 +278,12 @@ def _cover_with_jackknife(ds, preds, opt, sol):
     """Leave-one-pose-out solves; each camera's total covariance becomes the cover of the modelled
     one and the jackknife's (jackknife.cover), and solver.jackknife records both."""
     jk = jackknife(ds, preds, opt, sol, solve, progress=opt.progress)
+    suspect = next((rep["influential_pose"] for rep in jk.values() if rep.get("influential_pose")), None)
+    if suspect:
+        sol.diagnostics.append(
+            f"robot pose {suspect['frame']}: without it the robot and the images agree {suspect['chi2_ratio']:.0f}x "
+            f"better (robot chi2 per dof {suspect['chi2_per_dof']:.3g} -> {suspect['chi2_per_dof_without']:.3g}, "
+            f"F = {suspect['F']:.3g}, p = {suspect['p']:.2g}): check its image and its pose, or solve without it")
     for c, rep in jk.items():
         before = np.asarray(sol.covariance[c])
         sol.covariance[c] = cover(before, np.asarray(rep["covariance"]))
