@@ -283,7 +283,8 @@ def _cover_with_jackknife(ds, preds, opt, sol):
         sol.diagnostics.append(
             f"robot pose {suspect['frame']}: without it the robot and the images agree {suspect['chi2_ratio']:.0f}x "
             f"better (robot chi2 per dof {suspect['chi2_per_dof']:.3g} -> {suspect['chi2_per_dof_without']:.3g}, "
-            f"F = {suspect['F']:.3g}, p = {suspect['p']:.2g}): check its image and its pose, or solve without it")
+            f"F = {suspect['F']:.3g}, p = {suspect['p']:.2g}): check its image and its pose (a wrong pair "
+            "geometry or a wrong robot pose)")
     for c, rep in jk.items():
         before = np.asarray(sol.covariance[c])
         sol.covariance[c] = cover(before, np.asarray(rep["covariance"]))
