@@ -31,6 +31,8 @@ def test_cover_covers_both_and_is_the_larger_where_one_dominates():
     A = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
     np.testing.assert_allclose(cover(A, 0.5 * A), A, atol=1e-12)
     np.testing.assert_allclose(cover(A, 2.0 * A), 2.0 * A, atol=1e-12)
+    singular = np.diag([1.0, 0, 1, 1, 1, 1])
+    assert _psd(cover(singular, A) - singular) and _psd(cover(singular, A) - A)
 
 
 def test_when_the_jackknife_runs():

@@ -139,7 +139,10 @@ def cover(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """The covariance that covers both A and B: in the frame where A is the identity
     (``L^-1 B L^-T``, ``A = L L^T``), B's eigenvalues below 1 are raised to 1. The result minus A
     and minus B are both positive semi-definite, and it equals A wherever B is smaller."""
-    L = np.linalg.cholesky(A)
+    try:
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:  # A not positive definite (numerically): the sum covers both too
+        return A + B
     Li = np.linalg.inv(L)
     w, V = np.linalg.eigh(Li @ B @ Li.T)
     M = L @ V @ np.diag(np.maximum(w, 1.0)) @ V.T @ L.T
