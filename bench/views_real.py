@@ -119,8 +119,7 @@ def run_pairwise(ds, frames, opt, cache):
                                                     else sol.covariance[c])["sigma_ee_frame"]
                               for c, X in sol.ee_T_cam.items()},
            # the pose the jackknife's data snooping names (solver/jackknife.influential_pose), if any
-           "influential_pose": next((r["influential_pose"]["frame"] for r in jk.values()
-                                     if r.get("influential_pose")), None),
+           "influential_pose": (sol.stats.get("influential_pose") or {}).get("frame"),
            # the noise model's alone: what the subset's own data can tell, with a perfect robot
            "sigma_noise_model": {c: uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
                                  for c, X in sol.ee_T_cam.items()}}

@@ -113,7 +113,7 @@ def test_jackknife_agrees_with_the_reported_covariance_on_simulated_data(simulat
     preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
     opt = SolveOptions(progress=False, jackknife="never")  # the modelled covariance, to be checked
     sol = solve(ds, preds, opt)
-    jk = jackknife(ds, preds, opt, sol, solve, progress=False)["cam0"]
+    jk = jackknife(ds, preds, opt, sol, solve, progress=False)[0]["cam0"]
     assert jk["solves"] == 12
     ratio = np.array(jk["ratio_to_reported"])
     assert np.all(ratio > 0.3) and np.all(ratio < 2.5), ratio

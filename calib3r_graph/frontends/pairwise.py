@@ -73,6 +73,7 @@ import gtsam
 import numpy as np
 from tqdm import tqdm
 
+from factors._lie import skew
 from calib3r_graph.errors import InputError, SolveError
 from calib3r_graph.frontends.common import aggregate_pointmaps, covisibility_edges, load_gray, undistort_maps
 from calib3r_graph.geometry import hand_eye_rotation, rotation_angle_deg
@@ -295,7 +296,7 @@ def two_view_geometry(fa: Features, fb: Features, K_a, K_b, opt: PairwiseOptions
         return None
     _, R, t, pose_mask = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3), mask=mask[inl].copy())
     t = t.ravel() / np.linalg.norm(t)
-    E = _skew(t) @ R
+    E = skew(t) @ R
     if opt.guided:
         # Guided matching: the ratio test and the mutual check again, among the candidates
         # that lie within the inlier threshold of each other's epipolar lines.
@@ -306,7 +307,7 @@ def two_view_geometry(fa: Features, fb: Features, K_a, K_b, opt: PairwiseOptions
         na = cv2.undistortPoints(fa.uv[ia].reshape(-1, 1, 2), K_a, None).reshape(-1, 2)
         nb = cv2.undistortPoints(fb.uv[ib].reshape(-1, 1, 2), K_b, None).reshape(-1, 2)
         R, t = refine_pose(R, t, na, nb, opt.ransac_px / f)
-        E = _skew(t) @ R
+        E = skew(t) @ R
         inl = np.ones(len(ia), bool)
     idx = np.flatnonzero(inl)
     # First-order optimal (Sampson) correction onto the final pose's epipolar geometry, then the rays meet.
@@ -322,10 +323,6 @@ def two_view_geometry(fa: Features, fb: Features, K_a, K_b, opt: PairwiseOptions
                  median_error_px=float(np.median(moved[ok])))
     return PairGeometry(va, vb, ia[idx], ib[idx], da[ok], db[ok], angle[ok], (1.0 - r[idx]).clip(0.05, 1.0),
                         R, t, stats)
-
-
-def _skew(t):
-    return np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
 
 
 def _homogeneous_rays(K, uv):
@@ -383,7 +380,7 @@ def refine_pose(R, t, xa, xb, thr):
         Rk = cv2.Rodrigues(p[:3])[0] @ R
         tk = t + p[3:]
         tk = tk / np.linalg.norm(tk)
-        E = _skew(tk) @ Rk
+        E = skew(tk) @ Rk
         ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
         Ea, Eb = ha @ E.T, hb @ E
         num = (hb * Ea).sum(1)
@@ -595,7 +592,7 @@ def rescue_pairs(ds, feats: dict, candidates, kept: dict, robot_info: dict, opt:
         t = -R @ B.translation()
         if np.linalg.norm(t) < 1e-6:
             return ab, None
-        E = _skew(t / np.linalg.norm(t)) @ R
+        E = skew(t / np.linalg.norm(t)) @ R
         px = 0.5 * (K[a][0, 0] + K[b][0, 0]) * np.tan(np.radians(opt.rescue_band_deg))
         return ab, two_view_geometry(feats[a], feats[b], K[a], K[b], opt, a, b, prior_E=E, prior_px=px)
 

@@ -25,15 +25,20 @@ def covariance_in_ee_frame(T_ee_cam, cov):
     return G @ cov @ G.T
 
 
+def sigma_ee_frame(sig: np.ndarray) -> dict:
+    """Per-axis sigmas of the ee-frame covariance's diagonal (rad, m) in degrees and mm."""
+    return {"rx_deg": float(np.degrees(sig[0])), "ry_deg": float(np.degrees(sig[1])),
+            "rz_deg": float(np.degrees(sig[2])), "x_mm": float(sig[3] * 1e3),
+            "y_mm": float(sig[4] * 1e3), "z_mm": float(sig[5] * 1e3)}
+
+
 def uncertainty_report(T_ee_cam, cov) -> dict:
     C = covariance_in_ee_frame(T_ee_cam, cov)
     sig = np.sqrt(np.maximum(np.diag(C), 0))
     corr = C / np.outer(sig, sig)
     pairs = sorted(((abs(corr[i, j]), AXES[i], AXES[j], corr[i, j]) for i in range(6) for j in range(i + 1, 6)),
                    reverse=True)[:3]
-    return {"sigma_ee_frame": {"rx_deg": float(np.degrees(sig[0])), "ry_deg": float(np.degrees(sig[1])),
-                               "rz_deg": float(np.degrees(sig[2])), "x_mm": float(sig[3] * 1e3),
-                               "y_mm": float(sig[4] * 1e3), "z_mm": float(sig[5] * 1e3)},
+    return {"sigma_ee_frame": sigma_ee_frame(sig),
             "strongest_correlations": [{"axes": [a, b], "rho": float(r)} for _, a, b, r in pairs]}
 
 

@@ -34,8 +34,9 @@ def wanted(mode: str, poses: int) -> bool:
     return mode == "always" or (mode == "auto" and poses < JACKKNIFE_BELOW)
 
 
-def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> dict:
-    """Per camera: the jackknife covariance of ee_T_cam, its sigmas and their ratio to ``sol``'s.
+def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> tuple[dict, dict | None]:
+    """({camera: the jackknife covariance of ee_T_cam, its sigmas and their ratio to ``sol``'s},
+    the pose the rest of the data reject or None (:func:`influential_pose`)).
 
     For each of the n frames the problem is solved without it (``solve_fn(ds, preds, opt)``,
     with the jackknife itself off); the spread of ee_T_cam over the solutions, in the tangent
@@ -58,11 +59,8 @@ def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> dict:
         _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress)
     finally:
         package_log.setLevel(level)
-    report = _jackknife_report(sol, xis)
-    suspect = influential_pose(sol.stats.get("noise_calibration", {}).get("robot_chi2_dof"), fits)
-    for rep in report.values():
-        rep["influential_pose"] = suspect
-    return report
+    return _jackknife_report(sol, xis), influential_pose(sol.stats.get("noise_calibration", {}).get("robot_chi2_dof"),
+                                                        fits)
 
 
 def _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress):
@@ -88,10 +86,9 @@ def _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress):
 
 
 def _sigmas(X, C) -> dict:
-    from calib3r_graph.io.results import covariance_in_ee_frame
+    from calib3r_graph.io.results import covariance_in_ee_frame, sigma_ee_frame
 
-    s = np.sqrt(np.diag(covariance_in_ee_frame(X, np.asarray(C))))
-    return dict(zip(AXES, np.r_[np.degrees(s[:3]), s[3:] * 1e3].tolist()))
+    return sigma_ee_frame(np.sqrt(np.maximum(np.diag(covariance_in_ee_frame(X, np.asarray(C))), 0)))
 
 
 def _jackknife_report(sol, xis) -> dict:

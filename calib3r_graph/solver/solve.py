@@ -276,9 +276,10 @@ def _unobservable_because(ds, preds, views) -> str:
 
 def _cover_with_jackknife(ds, preds, opt, sol):
     """Leave-one-pose-out solves; each camera's total covariance becomes the cover of the modelled
-    one and the jackknife's (jackknife.cover), and solver.jackknife records both."""
-    jk = jackknife(ds, preds, opt, sol, solve, progress=opt.progress)
-    suspect = next((rep["influential_pose"] for rep in jk.values() if rep.get("influential_pose")), None)
+    one and the jackknife's (jackknife.cover), and solver.jackknife records both;
+    solver.influential_pose names a pose the rest of the data reject (or is None)."""
+    jk, suspect = jackknife(ds, preds, opt, sol, solve, progress=opt.progress)
+    sol.stats["influential_pose"] = suspect
     if suspect:
         sol.diagnostics.append(
             f"robot pose {suspect['frame']}: without it the robot and the images agree {suspect['chi2_ratio']:.0f}x "
