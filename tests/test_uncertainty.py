@@ -142,3 +142,22 @@ def test_plan_cli(tmp_path, capsys):
     assert {r["frame"] for r in ranking} == {"c1", "c2"}
     gains = [r["information_gain_nats"] for r in ranking]
     assert gains == sorted(gains, reverse=True) and gains[0] > 0
+
+
+def test_relative_rotations_equal_gtsam_logmap_up_to_a_half_turn():
+    """The vectorised pairwise rotation vectors that check_motion, motion_diagnostics and
+    compare.rotates_about_two_axes share, against gtsam's Logmap pair by pair, with a pair
+    1e-5 rad short of a half turn, where the closed form alone loses the axis."""
+    import gtsam
+
+    from calib3r_graph.solver.uncertainty import relative_rotations
+
+    rng = np.random.default_rng(0)
+    poses = {f"{i:04d}": gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(size=3)), np.zeros(3)) for i in range(12)}
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    poses["0100"] = gtsam.Pose3(gtsam.Rot3.Expmap(axis * (np.pi - 1e-5)), np.zeros(3))
+    poses["0101"] = gtsam.Pose3()
+    frames = list(poses)
+    iu, ju = np.triu_indices(len(frames), 1)
+    expected = [gtsam.Rot3.Logmap(poses[frames[i]].between(poses[frames[j]]).rotation()) for i, j in zip(iu, ju)]
+    np.testing.assert_allclose(relative_rotations(poses, frames), expected, atol=1e-9)

@@ -267,16 +267,13 @@ def rotates_about_two_axes(base_T_ee: dict, frames, min_angle_deg=5.0, min_axis_
     """Whether the flange's relative motions among ``frames`` include two rotations of at least
     ``min_angle_deg`` about axes at least ``min_axis_deg`` apart (in the flange frame): what
     AX = XB needs to fix the hand-eye rotation and translation."""
-    frames = list(frames)
-    axes = []
-    for i, a in enumerate(frames):
-        for b in frames[i + 1:]:
-            w = gtsam.Rot3.Logmap(base_T_ee[a].between(base_T_ee[b]).rotation())
-            if np.linalg.norm(w) >= np.radians(min_angle_deg):
-                axes.append(w / np.linalg.norm(w))
+    from calib3r_graph.solver.uncertainty import relative_rotations
+
+    w = relative_rotations(base_T_ee, list(frames))
+    norm = np.linalg.norm(w, axis=1)
+    axes = w[norm >= np.radians(min_angle_deg)] / norm[norm >= np.radians(min_angle_deg), None]
     if len(axes) < 2:
         return False
-    axes = np.array(axes)
     return bool(np.abs(axes @ axes.T).min() <= np.cos(np.radians(min_axis_deg)))
 
 

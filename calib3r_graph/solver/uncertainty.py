@@ -63,8 +63,11 @@ MIN_MOVE_MM = 1.0  # ... and with less translation than this, it "did not move"
 
 
 def relative_rotations(base_T_ee: dict, frames) -> np.ndarray:
-    """Rotation vectors (rad, in the first pose's ee frame) of the flange between every two frames, (P, 3)."""
-    R = np.array([base_T_ee[f].rotation().matrix() for f in frames])
+    """Rotation vectors Log(R_a^T R_b) (rad, in pose a's ee frame) of the flange between every two
+    frames a < b in the given order, (P, 3), as ``np.triu_indices`` orders the pairs."""
+    import gtsam
+
+    R = np.array([base_T_ee[f].rotation().matrix() for f in frames]).reshape(-1, 3, 3)
     iu, ju = np.triu_indices(len(R), 1)
     rel = np.einsum("pji,pjk->pik", R[iu], R[ju])  # R_a^T R_b
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
@@ -72,7 +75,10 @@ def relative_rotations(base_T_ee: dict, frames) -> np.ndarray:
     vee = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], 1)
     sin = np.sin(angle)
     factor = np.where(sin > 1e-9, angle / (2 * np.where(sin > 1e-9, sin, 1.0)), 0.5)
-    return vee * factor[:, None]
+    w = vee * factor[:, None]
+    for k in np.flatnonzero(angle > np.pi - 1e-3):  # near a half turn the closed form loses the axis
+        w[k] = gtsam.Rot3.Logmap(gtsam.Rot3(rel[k]))
+    return w
 
 
 def check_motion(base_T_ee: dict, frames, robot_file="robot_poses.csv"):
@@ -104,19 +110,13 @@ def check_motion(base_T_ee: dict, frames, robot_file="robot_poses.csv"):
 
 def motion_diagnostics(base_T_ee: dict, frames) -> list:
     """Plain-words warnings about the robot motion (too few poses, too little or degenerate rotation)."""
-    import gtsam
-
     frames = sorted(frames)
     msgs = []
     if len(frames) < 5:
         msgs.append(f"only {len(frames)} robot poses: use at least 8-10 for a reliable calibration")
-    axes, angles = [], []
-    for i, a in enumerate(frames):
-        for b in frames[i + 1:]:
-            w = gtsam.Rot3.Logmap(base_T_ee[a].between(base_T_ee[b]).rotation())
-            angles.append(np.linalg.norm(w))
-            if angles[-1] > np.radians(2):
-                axes.append(w)  # angle-weighted axis
+    w = relative_rotations(base_T_ee, frames)
+    angles = list(np.linalg.norm(w, axis=1))
+    axes = [x for x, a in zip(w, angles) if a > np.radians(2)]  # angle-weighted axes
     rotation_warned = not angles or np.degrees(max(angles)) < 10
     if rotation_warned:
         msgs.append("the flange rotates less than 10 degrees between any two poses: the translation of ee_T_cam "
