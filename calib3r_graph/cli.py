@@ -156,6 +156,7 @@ def cmd_convert(args):
 def cmd_compare(args):
     from calib3r_graph.errors import SolveError
     from calib3r_graph.evaluation import compare as cmp
+    from calib3r_graph.evaluation import consistency
     from calib3r_graph.io.dataset import ee_T_cam_by_camera, load_dataset, load_ground_truth
     from calib3r_graph.io.output import atomic_write_json, atomic_write_text, staged_directory
     from calib3r_graph.io.predictions import load_predictions
@@ -195,22 +196,21 @@ def cmd_compare(args):
         reference, ref_name = {}, None
     out = Path(args.out)
     sweep = halves = None
+    against_pattern = bool(ref_name and ref_name.startswith("pattern-ba"))
+    if against_pattern:
+        result["in_sigmas"] = consistency.consistency(result, "pattern-ba")
     with staged_directory(out) as stage:
-        atomic_write_json(stage / "comparison.json", result)
-        if ref_name and ref_name.startswith("pattern-ba"):
-            from calib3r_graph.evaluation.consistency import consistency, sigma_table
-
-            result["in_sigmas"] = consistency(result, "pattern-ba")
-            atomic_write_json(stage / "comparison.json", result)
         if ref_name:
-            table = cmp.markdown_table(result, reference, ref_name)
             from calib3r_graph.evaluation.evaluate import metric_scale_table
 
-            if metric_scale_table(result):
-                table += "\n" + metric_scale_table(result)
+            table = cmp.markdown_table(result, reference, ref_name)
+            scale_table = metric_scale_table(result)
+            if scale_table:
+                table += "\n" + scale_table
             if result.get("in_sigmas"):
-                table += "\n" + sigma_table(result["in_sigmas"], "Difference to pattern-ba per ee axis, in sigmas "
-                                             "(each method's total sigma combined with pattern-ba's; acceptance 3σ):")
+                table += "\n" + consistency.sigma_table(result["in_sigmas"], "Difference to pattern-ba per ee axis, "
+                                                         "in sigmas (each method's total sigma combined with "
+                                                         "pattern-ba's; acceptance 3σ):")
             atomic_write_text(stage / "comparison.md", table)
             cmp.bar_plot(result, reference, stage / "comparison.png", f"{ds.root.name}: errors against {ref_name}")
             print(table)
@@ -222,21 +222,19 @@ def cmd_compare(args):
             atomic_write_json(stage / "views_sweep.json", sweep)
             cmp.sweep_plot(sweep, stage / "views_sweep.png", ref_name)
         if args.halves:
-            from calib3r_graph.evaluation import consistency
-
             halves = cmp.halves(ds, preds, noise, methods)
             halves_md = cmp.halves_table(halves)
             if halves["in_sigmas"]:
                 halves_md += "\n" + consistency.sigma_table(halves["in_sigmas"], "The halves' difference per ee axis, "
                                                             "in sigmas of a difference (acceptance: 3σ):")
-            if ref_name and ref_name.startswith("pattern-ba"):
+            if against_pattern:
                 check = consistency.reference_validation(halves, "pattern-ba", args.tolerance_mm, args.tolerance_deg)
                 result["reference_validation"] = check
                 halves_md += "\n" + check["reason"] + "\n"
-                atomic_write_json(stage / "comparison.json", result)
             atomic_write_json(stage / "halves.json", halves)
             atomic_write_text(stage / "halves.md", halves_md)
             print(halves_md)
+        atomic_write_json(stage / "comparison.json", result)  # once, with in_sigmas and the reference check
         if not args.no_report:
             from calib3r_graph.report import compare_report_html
 
