@@ -1,6 +1,6 @@
 """Every public recording in ../shared/real end to end: import, each RGB frontend (colmap and
 pairwise), solve, and compare --halves. Prints one table and writes it to bench/results/real.md, from
-which the README's real-recordings section is taken.
+which docs/real-recordings.md's table and the README's headline figures are taken.
 
 Per recording and method: the difference to the pattern reference (pattern-ba) in mm and
 degrees, and in sigmas per ee axis (the method's total sigma combined with the reference's);

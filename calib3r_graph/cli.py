@@ -8,6 +8,7 @@ import argparse
 import logging
 import os
 import sys
+import traceback
 from pathlib import Path
 
 # One BLAS thread unless the user says otherwise, set before numpy loads: the solver's dense
@@ -61,10 +62,49 @@ def cmd_solve(args):
         from calib3r_graph.report import solve_report_writer
 
         report = solve_report_writer(ds, preds, sol, opt.noise)
-    summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud, extra=report)
+    dense = _dense_step(args, ds, preds.name, sol) if args.dense else None
+    summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud, extra=report, dense=dense)
     print(summary, end="")
     print(f"  wrote {out}/calibration.json, trajectory.csv, summary.txt"
-          + ("" if args.no_cloud else ", reconstruction.ply") + ("" if args.no_report else ", report.html"))
+          + ("" if args.no_cloud else ", reconstruction.ply") + (", dense.ply, mesh.ply, dense.json" if args.dense else "")
+          + ("" if args.no_report else ", report.html"))
+
+
+def _dense_options(args):
+    from calib3r_graph.dense import DenseOptions
+
+    return DenseOptions(voxel_mm=args.voxel_mm, max_views=args.max_views, source=args.dense_source,
+                        progress=not args.quiet)
+
+
+def _dense_step(args, ds, predictions_name, sol):
+    """solve --dense: the dense reconstruction in the staging folder, after trajectory.csv."""
+    from calib3r_graph.dense.run import reconstruct, summary_lines
+    from calib3r_graph.dense.views import SolveResult
+
+    def run(stage):
+        result = SolveResult({v: T.matrix() for v, T in sol.base_T_cam.items()},
+                             {c: X.matrix() for c, X in sol.ee_T_cam.items()}, predictions_name, Path(stage))
+        figures = reconstruct(ds, result, _dense_options(args), stage)
+        return figures, summary_lines(figures)
+    return run
+
+
+def cmd_reconstruct(args):
+    from calib3r_graph.dense.run import reconstruct_result, summary_lines
+
+    figures = reconstruct_result(args.result, args.dataset, _dense_options(args))
+    print(summary_lines(figures), end="")
+    print(f"  wrote {args.result}/dense.ply, mesh.ply, dense.json")
+
+
+def _add_dense_args(p):
+    g = p.add_argument_group("dense reconstruction (docs/dense.md)")
+    g.add_argument("--voxel-mm", type=float, default=2.0, help="voxel size of the fused cloud and mesh (default 2)")
+    g.add_argument("--max-views", type=int, help="use at most N views, spread over the recording (default: all)")
+    g.add_argument("--dense-source", choices=["auto", "stereo", "depth", "predictions"], default="auto",
+                   help="per-view depth: sensor depth (depth/), dense predictions with the solve's depth scale, or "
+                        "SGBM stereo from the images; auto: the first the dataset has (default)")
 
 
 def cmd_simulate(args):
@@ -103,6 +143,11 @@ def _solve_dataset(args):
     from calib3r_graph.solver.solve import SolveOptions, solve
 
     ds = load_dataset(args.dataset, skip_missing=args.skip_missing)
+    if getattr(args, "intrinsics_sigma_px", None):  # a stated prior on the intrinsics (solver/camera_model.py)
+        from calib3r_graph.solver.camera_model import parse_intrinsics_sigma, with_params_sigma
+
+        ds = with_params_sigma(ds, parse_intrinsics_sigma(args.intrinsics_sigma_px),
+                               f"--intrinsics-sigma-px {args.intrinsics_sigma_px}")
     name = ensure_predictions(ds, args.predictions, progress=not args.quiet, announce=_announce)
     preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=args.skip_missing)
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
@@ -257,7 +302,8 @@ def cmd_import(args):
         from calib3r_graph.io.boards import parse_board
 
         board = parse_board(args.board)  # COLSxROWS inner corners, or charuco:/circles:/acircles: specs
-    print(import_recording(args.format, args.src, dst, board, progress=not args.quiet))
+    print(import_recording(args.format, args.src, dst, board, progress=not args.quiet, unit=args.unit,
+                           direction=args.direction))
 
 
 def cmd_evaluate(args):
@@ -294,7 +340,8 @@ def cmd_import_files(args):
 
     _refuse_non_empty(Path(args.dst), args.force)
     print(import_files(args.dst, args.images, args.poses, args.pose_format, args.unit, args.intrinsics, args.board,
-                       progress=not args.quiet))
+                       progress=not args.quiet, pose_key=args.pose_key, camera_name=args.camera_name,
+                       direction=args.direction))
 
 
 def cmd_import_rosbag(args):
@@ -307,6 +354,33 @@ def cmd_import_rosbag(args):
                         depth_topics=args.depth_topic or [], camera_info_topics=args.camera_info_topic or [],
                         intrinsics=args.intrinsics or [], **bounds)
     print(import_rosbag(args.bag, args.dst, opt))
+
+
+def cmd_live(args):
+    from calib3r_graph.live.cli import run_live
+
+    run_live(args, _noise_from_args)
+
+
+def _add_live_args(p):
+    p.add_argument("dataset", help="dataset folder (calib3r-dataset/1): its cameras, and the frames as they come")
+    mode = p.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--replay", choices=["recorded", "guided", "random"], help="replay the recording frame by frame")
+    mode.add_argument("--watch", action="store_true", help="wait for the frames a capture script adds")
+    p.add_argument("--out", required=True, help="output folder: calibration.json, next_poses.csv, live.jsonl")
+    p.add_argument("--seed", type=int, default=0, help="--replay random: the permutation's seed")
+    p.add_argument("--target-mm", type=float, default=1.0, help="stop when the largest total sigma is within this")
+    p.add_argument("--target-deg", type=float, default=0.1, help="... and this")
+    p.add_argument("--next", type=int, default=5, help="how many next poses to propose")
+    p.add_argument("--margin-m", type=float, default=0.05, help="grow the visited region by this for the proposals")
+    p.add_argument("--box", help="x0,y0,z0,x1,y1,z1: propose flange positions inside this box (base frame, m)")
+    p.add_argument("--predictions", help="use DATASET/predictions/NAME (default: the only one; none: the pairwise "
+                                         "frontend on the images)")
+    p.add_argument("--resume", action="store_true", help="--watch: continue a killed session from OUT/live.jsonl")
+    p.add_argument("--poll-s", type=float, default=1.0, help="--watch: seconds between looks at the folder")
+    p.add_argument("--idle-s", type=float, default=None, help="--watch: end after this long without a new frame")
+    _add_noise_args(p)
+    p.set_defaults(func=cmd_live)
 
 
 def cmd_export(args):
@@ -328,18 +402,35 @@ def _add_import_files_args(p):
                    help="a folder or glob of one camera's images; repeat per camera (cam0, cam1, ...)")
     p.add_argument("--poses", required=True, help="a pose file (one pose per line), or a folder or glob of one "
                                                   "file per frame (.txt, .npy, .json, .yaml)")
-    p.add_argument("--pose-format", required=True,
+    p.add_argument("--pose-format",
                    help="matrix, xyz-quat-xyzw, xyz-quat-wxyz, xyz-rotvec, xyz-euler:ORDER:deg|rad (KUKA: "
-                        "xyz-euler:zyx:deg), xyz-euler:fixed-ORDER:deg|rad (ROS rpy: fixed-xyz), visp")
-    p.add_argument("--unit", choices=["m", "mm"], help="translation unit of the poses (default m; checked against "
-                                                       "the images when there is a board)")
-    p.add_argument("--intrinsics", action="append", help="ROS camera_info YAML, OpenCV FileStorage YAML/XML or "
-                                                         "Kalibr camchain; repeat per camera")
+                        "xyz-euler:zyx:deg), xyz-euler:fixed-ORDER:deg|rad (ROS rpy: fixed-xyz), visp "
+                        "(required, except with --pose-key: then matrix by default)")
+    p.add_argument("--pose-key", help="the JSON/YAML entry that holds each pose, dots for nested keys (Franka's "
+                                      "data.json: O_T_EE, row- or column-major, found from the numbers)")
+    p.add_argument("--unit", choices=["m", "mm"], help="translation unit of the poses (default m; with a board the "
+                                                       "images decide unless it is given)")
+    _add_convention_args(p, unit=False)
+    p.add_argument("--intrinsics", action="append", help="ROS camera_info YAML, OpenCV FileStorage YAML/XML, "
+                                                         "Kalibr camchain, ViSP camera.xml or .npz (K, dist); "
+                                                         "repeat per camera; with --board too, the board checks "
+                                                         "the poses' direction and unit")
+    p.add_argument("--camera-name", help="which camera of a ViSP camera.xml that holds several")
     p.add_argument("--board", help="board in the images: COLSxROWS:SQUARE_M (inner corners), "
                                    "charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICT], circles:COLSxROWS:SPACING_M, "
                                    "acircles:COLSxROWS:SPACING_M")
     p.add_argument("--force", action="store_true", help="write into a non-empty folder")
     p.set_defaults(func=cmd_import_files)
+
+
+def _add_convention_args(p, unit=True):
+    # The pose convention: the board's motion decides what is not given; what is given is still checked.
+    if unit:
+        p.add_argument("--unit", choices=["m", "mm"], help="force the poses' translation unit (default: the "
+                                                           "images decide)")
+    p.add_argument("--direction", choices=["base_T_ee", "ee_T_base"],
+                   help="force the poses' direction (default base_T_ee; with a board the images decide unless it is "
+                        "given; a forced convention that does not fit is still refused)")
 
 
 def _add_import_rosbag_args(p):
@@ -400,11 +491,32 @@ def _add_solve_args(s):
                         "(default: auto)")
     g.add_argument("--reprojection", action="store_true",
                    help="add 2D reprojection factors (double-counts match noise; off by default)")
+    g.add_argument("--intrinsics-sigma-px", metavar="F,C",
+                   help="1-sigma of the focal lengths and of the principal point (px), propagated into the total "
+                        "sigma, e.g. for factory intrinsics; replaces dataset.yaml's params_sigma (default: "
+                        "params_sigma where dataset.yaml has it, else the camera model is not in the sigma)")
     _add_noise_args(s)
 
 
+_DESCRIPTION = """\
+Eye-in-hand hand-eye calibration: finds ee_T_cam, the transform from the robot's flange to the
+camera, for one camera or every camera of a rig, from the flange poses and the images taken at
+them. No calibration pattern is needed. The hand-eye, the metric scale and a metric 3D
+reconstruction are solved jointly in one factor graph, and every result comes with its
+1-sigma per axis in mm and degrees. compare runs OpenCV's hand-eye solvers beside it."""
+
+_EPILOG = """\
+from your robot's files to a URDF:
+  calib3r-graph import files mycell --images shots/ --poses poses.txt --pose-format FMT --board SPEC
+  calib3r-graph solve mycell --out mycell_result        (then read the summary and its warnings)
+  calib3r-graph export mycell_result --format urdf --parent tool0 --child camera_optical_frame
+
+'calib3r-graph COMMAND --help' lists a command's options; README.md and docs/ explain them."""
+
+
 def build_parser():
-    p = argparse.ArgumentParser(prog="calib3r-graph", description=__doc__.splitlines()[0] if __doc__ else None)
+    p = argparse.ArgumentParser(prog="calib3r-graph", description=_DESCRIPTION, epilog=_EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
     p.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
@@ -414,6 +526,8 @@ def build_parser():
     _add_solve_args(s)
     s.add_argument("--no-cloud", action="store_true", help="skip reconstruction.ply")
     s.add_argument("--no-report", action="store_true", help="skip report.html")
+    s.add_argument("--dense", action="store_true", help="also run the dense reconstruction (dense.ply, mesh.ply)")
+    _add_dense_args(s)
     s.set_defaults(func=cmd_solve)
 
     pl = sub.add_parser("plan", help="rank candidate robot poses by expected information gain")
@@ -484,6 +598,7 @@ def build_parser():
                                         "or charuco:COLSxROWS:SQUARE_M:MARKER_M[:DICT], circles:/acircles:COLSxROWS:"
                                         "SPACING_M")
         im.add_argument("--force", action="store_true", help="write into a non-empty folder")
+        _add_convention_args(im)
         im.set_defaults(func=cmd_import)
     _add_import_files_args(im_sub.add_parser("files", help="images per camera and a robot pose file"))
     _add_import_rosbag_args(im_sub.add_parser("rosbag", help="a ROS 1 .bag or ROS 2 bag (sqlite3, MCAP)"))
@@ -491,10 +606,18 @@ def build_parser():
     ex = sub.add_parser("export", help="write a solve result as URDF, xacro, ROS launch, tf YAML or easy_handeye")
     _add_export_args(ex)
 
+    rc = sub.add_parser("reconstruct", help="dense cloud and mesh of a solve result, in the robot's base frame")
+    rc.add_argument("result", help="folder written by solve (calibration.json, trajectory.csv); never modified "
+                                   "except for dense.ply, mesh.ply, dense.json and summary.txt's dense lines")
+    rc.add_argument("dataset", help="the dataset folder that was solved")
+    _add_dense_args(rc)
+    rc.set_defaults(func=cmd_reconstruct)
+
     e = sub.add_parser("evaluate", help="compare a solve result with the dataset's ground truth")
     e.add_argument("result", help="folder written by solve")
     e.add_argument("dataset", help="dataset folder with ground_truth.yaml")
     e.set_defaults(func=cmd_evaluate)
+    _add_live_args(sub.add_parser("live", help="live, guided calibration: update per frame, propose the next poses"))
     return p
 
 
@@ -505,8 +628,8 @@ def main(argv=None) -> int:
     try:
         args.func(args)
     except Calib3rError as e:
-        if args.debug:
-            raise
+        if args.debug:  # the traceback, then the same exit code as without --debug
+            traceback.print_exc()
         print(f"calib3r-graph: error: {e}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
@@ -514,16 +637,17 @@ def main(argv=None) -> int:
         return 130
     except Exception as e:  # a library's failure or a bug: one line, the traceback with --debug
         if args.debug:
-            raise
+            traceback.print_exc()
         from calib3r_graph.errors import library_error
 
         described = library_error(e)
+        hint = "" if args.debug else " (run with --debug for the details)"
         if described is not None:
-            print(f"calib3r-graph: error: {described[0]} (run with --debug for the details)", file=sys.stderr)
+            print(f"calib3r-graph: error: {described[0]}{hint}", file=sys.stderr)
             return described[1]
         first = next((line for line in str(e).splitlines() if line.strip()), "")
-        print(f"calib3r-graph: internal error: {type(e).__name__}: {first} (run with --debug for the traceback)",
-              file=sys.stderr)
+        print(f"calib3r-graph: internal error: {type(e).__name__}: {first}"
+              + ("" if args.debug else " (run with --debug for the traceback)"), file=sys.stderr)
         return 1
     return 0
 

@@ -74,11 +74,13 @@ def _library_of(exc) -> str | None:
     return None
 
 
-def library_error(exc) -> tuple[str, int] | None:
+def library_error(exc, describe=None) -> tuple[str, int] | None:
     """``(one line, exit code)`` for an exception raised by GTSAM, pycolmap or OpenCV, else None.
 
     The line names the library and the cause (OpenCV's error name and first detail, GTSAM's
-    under-constrained variable and what it is); the full text is left to ``--debug``."""
+    under-constrained variable and what it is); the full text is left to ``--debug``.
+    ``describe(letter, index) -> str | None`` names a GTSAM key in the caller's words (the view's
+    camera and frame: solver.graph.Keys.describe), instead of the key and its kind."""
     import re
 
     lib = _library_of(exc)
@@ -88,13 +90,17 @@ def library_error(exc) -> tuple[str, int] | None:
     lines = [line.strip(" >") for line in text.splitlines() if line.strip(" >")]
     if lib == "gtsam" and "ndetermina" in text:
         m = re.search(r"Symbol: (\w)(\d+)", text)
-        var = f" near variable {m.group(1)}{m.group(2)} ({_SYMBOLS.get(m.group(1), 'a variable')})" if m else ""
+        named = describe(m.group(1), int(m.group(2))) if m and describe else None
+        var = (f" near {named}" if named else
+               f" near variable {m.group(1)}{m.group(2)} ({_SYMBOLS.get(m.group(1), 'a variable')})" if m else "")
         return (f"GTSAM: indeterminate linear system{var}: nothing fixes it well enough (too little overlap or "
                 "rotation in the data, or a zero or non-finite noise sigma)", SolveError.exit_code)
     if lib == "cv2":
-        m = re.search(r"error: \(-?\d+:([^)]*)\)", text)
+        m = re.search(r"error: \(-?\d+:([^)]*)\)([^\n]*)", text)
         cause = m.group(1) if m else (lines[0] if lines else type(exc).__name__)
+        # the detail: on the lines below (a Python binding's message) or after the cause on its line
         detail = next((line for line in lines[1:] if not line.startswith(("where", "'"))), "")
+        detail = detail or (m.group(2).strip() if m else "")
         return f"OpenCV: {cause}" + (f" ({detail})" if detail else ""), 1
     first = lines[0] if lines else type(exc).__name__
     return f"{LIBRARIES[lib]}: {type(exc).__name__}: {first}", 1

@@ -1,7 +1,10 @@
 """``import files``: a folder of images per camera and a robot pose file -> calib3r-dataset/1.
 
 Frames are matched to poses by the number in the image file names (and in the pose file's
-frame column or per-frame file names), or else by sorted order; any mismatch is an error.
+frame column or per-frame file names; where the names do not tell the frames apart, as in
+per-frame folders ``pose_07/image.png``, by the nearest parent folder's number), or else by
+sorted order; any mismatch is an error. dataset.yaml's ``source.frames`` keeps, per frame id,
+the image file of each camera and where its pose was read.
 With a board in the images, the pose direction (base_T_ee or ee_T_base) and unit (m or mm)
 are checked against the board's visual motion, as ``import rwhe`` does, and the convention the
 images support is used and reported. Intrinsics come from a file
@@ -13,16 +16,16 @@ import shutil
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.importers import (apply_convention, board_poses, calibrate_intrinsics, choose_convention,
-                                     convention_lines, detect_all, refine_intrinsics_with_robot)
+from calib3r_graph.importers import (DIRECTION_KEYS, DIRECTIONS, apply_convention, board_poses, calibrate_intrinsics,
+                                     choose_convention, convention_lines, detect_all,
+                                     refine_intrinsics_with_robot, turns_record, unturned)
 from calib3r_graph.io import boards
-from calib3r_graph.io.dataset import Camera, write_dataset_yaml, write_robot_poses
+from calib3r_graph.io.dataset import opencv_camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.io.intrinsics_files import read_intrinsics
 from calib3r_graph.io.output import staged_directory
-from calib3r_graph.io.pose_files import expand, frame_number, parse_format, read_poses
+from calib3r_graph.io.pose_files import FORMAT_HELP, describe, expand, frame_numbers, parse_format, read_poses
 
 log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -40,7 +43,7 @@ def match_frames(image_lists: list, records: list) -> tuple:
 
     By number where the poses and the images are numbered, else by sorted order."""
     pose_nums = _numbered(records, lambda r: r.number)
-    cams_nums = [_numbered(files, frame_number) for files in image_lists]
+    cams_nums = [frame_numbers(files) for files in image_lists]
     if pose_nums is not None and all(n is not None for n in cams_nums):
         poses = dict(zip(pose_nums, records))
         out = []
@@ -79,8 +82,10 @@ def _image_size(path: Path) -> tuple:
     return img.shape[1], img.shape[0]
 
 
-def _cameras_intrinsics(intrinsics_files: list, n_cams: int, sizes: list) -> list:
-    found = [i for f in intrinsics_files for i in read_intrinsics(f)]
+def _cameras_intrinsics(intrinsics_files: list, n_cams: int, sizes: list, camera_name=None) -> list:
+    one_each = len(intrinsics_files) == n_cams  # then file j is camera j's: its image size picks among several
+    found = [i for j, f in enumerate(intrinsics_files)
+             for i in read_intrinsics(f, camera_name, sizes[j] if one_each else None)]
     if len(found) != n_cams:
         raise InputError("--intrinsics", f"{len(found)} camera(s) in the intrinsics file(s) but {n_cams} --images "
                                          "folder(s): give one per camera, in the same order")
@@ -91,11 +96,15 @@ def _cameras_intrinsics(intrinsics_files: list, n_cams: int, sizes: list) -> lis
     return found
 
 
-def import_files(dst, images: list, poses: str, pose_format: str, unit: str | None = None,
-                 intrinsics: list | None = None, board: str | None = None, progress: bool = True) -> str:
-    """Write a dataset to ``dst``; returns the report."""
+def import_files(dst, images: list, poses: str, pose_format: str | None, unit: str | None = None,
+                 intrinsics: list | None = None, board: str | None = None, progress: bool = True,
+                 pose_key: str | None = None, camera_name: str | None = None, direction: str | None = None) -> str:
+    """Write a dataset to ``dst``; returns the report. ``pose_key``: the JSON/YAML entry holding
+    each pose (then ``pose_format`` defaults to matrix); ``camera_name``: a ViSP camera.xml's camera."""
     dst = Path(dst)
-    fmt = parse_format(pose_format)
+    if pose_format is None and not pose_key:
+        raise InputError("--pose-format", f"give the pose files' format: {FORMAT_HELP}")
+    fmt = parse_format(pose_format or "matrix")
     if not intrinsics and not board:
         raise InputError("--intrinsics", "give the cameras' intrinsics (--intrinsics FILE) or a board in the images "
                                          "to calibrate them from (--board SPEC)")
@@ -105,15 +114,17 @@ def import_files(dst, images: list, poses: str, pose_format: str, unit: str | No
         if not files:
             raise InputError(spec, f"no images ({', '.join(IMAGE_SUFFIXES)}) in it")
         image_lists.append(files)
-    records = read_poses(poses, fmt)
+    records = read_poses(poses, fmt, pose_key)
     frames, pose_of, image_of, how = match_frames(image_lists, records)
     sizes = []
     for j, files in enumerate(image_of):
         size = _image_size(next(iter(files.values())))
         sizes.append(size)
-    given = _cameras_intrinsics(intrinsics, len(images), sizes) if intrinsics else None
+    given = _cameras_intrinsics(intrinsics, len(images), sizes, camera_name) if intrinsics else None
     mats = {f: pose_of[f].matrix for f in frames}
     lines = [f"imported {len(frames)} frames x {len(images)} camera(s) into {dst}, images matched to poses {how}"]
+    if describe(records):
+        lines.append(f"  robot poses: {describe(records)}")
 
     board_obj, pattern, cams, convention = None, None, [], None
     if board:
@@ -143,24 +154,35 @@ def import_files(dst, images: list, poses: str, pose_format: str, unit: str | No
             board_obj = board_used  # the dictionary found, or the checkerboard's corrected size
         detections.append((dets, cam_T_board, K, dist))
 
-    stated_unit = unit or "m"
-    ref = next((j for j, (d, cb, _, _) in enumerate(detections) if len(cb) >= 3), None)
-    if ref is not None:
-        (unit_used, direction), _, residuals = choose_convention({f: mats[f] for f in detections[ref][1]},
-                                                                 detections[ref][1])
-        lines += convention_lines(direction, unit_used, residuals)
-        convention = f"{direction}, {unit_used}"
-        if direction.startswith("inverted") or (unit is not None and unit_used != unit):
-            msg = (f"the poses fit the images as '{convention}', not as base_T_ee in "
-                   f"{stated_unit}{'' if unit else ' (the default)'}: using '{convention}'")
-            log.warning(msg)
-            lines.append(f"  ! {msg}")
-    else:
-        unit_used, direction = stated_unit, "as given (base_T_ee)"
-        convention = f"{direction}, {unit_used} (not checked: no board seen in 3 images)"
-        lines.append(f"  robot poses: taken as base_T_ee in {unit_used}; not checked against the images "
-                     "(give --board to check direction and unit)")
-    base_T_ee = {f: apply_convention(M, unit_used, direction) for f, M in mats.items()}
+    # --- pose convention: checked against the board's motion, forced by --unit/--direction ---
+    declared = f"{'--unit' if unit else 'the default unit'}, {'--direction' if direction else 'the default direction'}"
+    unit_key, dir_key = unit or "m", direction or "base_T_ee"
+    checked = [j for j, (d, cb, _, _) in enumerate(detections) if len(cb) >= 3]
+    for j in checked:  # the first camera chooses, the others are checked under its choice
+        dets, cam_T_board, K, dist = detections[j]
+        conv = choose_convention({f: mats[f] for f in cam_T_board}, cam_T_board,
+                                 boards.pose_covariances(board_obj, dets, cam_T_board, K, dist), board_obj,
+                                 unit if j == checked[0] else conv.unit,
+                                 direction if j == checked[0] else DIRECTION_KEYS[conv.direction], poses,
+                                 f"cam{j}'s images ({images[j]})", f"{how} of the images' and the poses' files")
+        detections[j] = (*unturned(dets, cam_T_board, board_obj, conv.turns), K, dist)
+        if j == checked[0]:
+            unit_used, direction_used = conv.unit, conv.direction
+            lines += convention_lines(conv, unit_key, dir_key, declared)
+            convention = conv.name
+            source_turns = turns_record(conv)
+        elif conv.turns.turned:
+            lines.append(f"  cam{j}: {len(conv.turns.turned)} board detections renumbered to agree with the "
+                         "robot's motion")
+    if not checked:
+        unit_used, direction_used = unit_key, DIRECTIONS[dir_key]
+        seen = max((len(cb) for _, cb, _, _ in detections), default=0)
+        why = "no board given" if board_obj is None else f"the board is seen in {seen} image(s), 3 needed"
+        convention = f"{direction_used}, {unit_used} ({why}: unchecked)"
+        lines.append(f"  robot poses: {why}: the poses are taken as {dir_key} in {unit_used} ({declared}), "
+                     "unchecked (give --board to check direction and unit)")
+        source_turns = {}
+    base_T_ee = {f: apply_convention(M, unit_used, direction_used) for f, M in mats.items()}
     if board_obj is not None:
         pattern = boards.to_pattern(board_obj)
     for j, (dets, cam_T_board, K, dist) in enumerate(detections):
@@ -169,11 +191,13 @@ def import_files(dst, images: list, poses: str, pose_format: str, unit: str | No
             K, dist = refine_intrinsics_with_robot(K, dist, sizes[j], dets, cam_T_board, base_T_ee, pattern)
             lines.append(f"  cam{j}: refined with the robot's metric motion (pattern-ba): fx {K[0, 0]:.1f} "
                          f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f} (board alone: fx {K_board[0, 0]:.1f})")
-        cams.append(Camera(f"cam{j}", "OPENCV", int(sizes[j][0]), int(sizes[j][1]),
-                           tuple(float(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.ravel(dist)[:4]))))
+        cams.append(opencv_camera(f"cam{j}", sizes[j], K, dist))
+    sources = {f: {**{c.name: str(files[f]) for c, files in zip(cams, image_of)}, "pose": pose_of[f].where}
+               for f in frames}
     _write(dst, cams, image_of, base_T_ee, pattern,
            {"source": {"format": "files", "images": [str(i) for i in images], "poses": str(poses),
-                       "pose_format": fmt.name, "pose_convention": convention, "matched": how}})
+                       "pose_format": fmt.name, **({"pose_key": pose_key} if pose_key else {}),
+                       "pose_convention": convention, **source_turns, "matched": how, "frames": sources}})
     return "\n".join(lines)
 
 

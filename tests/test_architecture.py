@@ -15,7 +15,8 @@ PACKAGES = ("calib3r_graph", "factors")
 # The lower layers and what they must never import.
 LOWER = ("factors", "calib3r_graph.io", "calib3r_graph.geometry", "calib3r_graph.errors",
          "calib3r_graph.solver.observations")
-UPPER = ("calib3r_graph.solver", "calib3r_graph.evaluation", "calib3r_graph.cli", "calib3r_graph.report")
+UPPER = ("calib3r_graph.solver", "calib3r_graph.evaluation", "calib3r_graph.cli", "calib3r_graph.report",
+         "calib3r_graph.dense")
 
 
 def _module_name(path: Path) -> str:
@@ -134,3 +135,12 @@ def test_solver_never_imports_evaluation_report_or_cli():
     bad = sorted(f"{m} imports {d}" for m, deps in g.items() if _in(m, ("calib3r_graph.solver",))
                  for d in deps if _in(d, above))
     assert not bad, "; ".join(bad)
+
+
+def test_dense_reads_results_and_never_the_solver_evaluation_report_or_cli():
+    """The dense step works from a solve's files (and io), so it never needs the solver or what sits above."""
+    g = import_graph()
+    above = ("calib3r_graph.solver", "calib3r_graph.evaluation", "calib3r_graph.report", "calib3r_graph.cli")
+    bad = sorted(f"{m} imports {d}" for m, deps in g.items() if _in(m, ("calib3r_graph.dense",))
+                 for d in deps if _in(d, above))
+    assert any(_in(m, ("calib3r_graph.dense",)) for m in g) and not bad, "; ".join(bad)

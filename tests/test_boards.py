@@ -176,3 +176,107 @@ def test_pattern_methods_on_other_boards(tmp_path, spec, methods):
         X, _ = run_method(method, ds, None, NoiseOptions())
         et, er = pose_error(X["cam0"], truth)
         assert et < 1.5e-3 and er < 0.1, (method, et * 1e3, er)
+
+
+# --- boards that look the same turned by 180° ----------------------------------------------------
+
+def test_board_turns_and_renumbering():
+    """Which boards look the same turned, and a renumbered detection's PnP pose is the pose times the turn."""
+    cases = {"8x6:0.03": 2, "9x11:0.03": 2, "9x6:0.03": 1, "8x8:0.03": 4, "7x7:0.03": 2, "circles:7x5:0.03": 2,
+             "circles:5x5:0.03": 4, "acircles:4x11:0.02": 1, "acircles:4x10:0.02": 2, "charuco:9x7:0.03:0.02": 1}
+    for spec, n in cases.items():
+        assert boards.turns(boards.parse_board(spec)) == n, spec
+    board = boards.parse_board("8x6:0.03")
+    truth = look_at(np.random.default_rng(2), 0.4, target=boards.points(board)[:, :2].mean(0))
+    obj = boards.points(board)
+    R, t = truth.rotation().matrix(), truth.translation()
+    uv = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, np.zeros(4))[0].reshape(-1, 2)
+    T = gtsam.Pose3(boards.turn_matrix(board, 1, 2))
+    flipped = uv[::-1].copy()  # numbered from the opposite corner: its PnP pose is truth * T
+    et, er = pose_error(pnp(board, flipped, None), truth.compose(T))
+    assert et < 1e-6 and er < 1e-4
+    np.testing.assert_allclose(boards.turn_detection(board, flipped, 1, 2), uv)
+    # the canonical order starts at the corner nearest the image's top-left, whichever OpenCV returned
+    np.testing.assert_allclose(boards.canonical_order(board, flipped), boards.canonical_order(board, uv))
+
+
+@pytest.fixture(scope="module")
+def turned_rig(tmp_path_factory):
+    """A robot whose camera sees an 8x6 checkerboard (9x7 squares: the same turned by 180°), the
+    camera rolled by 180° about its optical axis in every third view, so the detector numbers the
+    corners from the opposite corner there; returns (dataset root, true ee_T_cam, rolled frames)."""
+    root = tmp_path_factory.mktemp("turned") / "d"
+    rng = np.random.default_rng(5)
+    board = boards.parse_board("8x6:0.03")
+    ee_T_cam = gtsam.Pose3(gtsam.Rot3.RzRyRx(0.02, -0.03, np.pi / 2), np.array([0.04, -0.03, 0.09]))
+    base_T_board = gtsam.Pose3(gtsam.Rot3.Rx(np.pi), np.array([0.5, 0.1, 0.0]))
+    (root / "images" / "cam0").mkdir(parents=True)
+    centre = boards.points(board)[:, :2].mean(0)
+    base_T_ee, rolled = {}, []
+    for i in range(9):
+        cam_T_board = look_at(rng, rng.uniform(0.35, 0.45), target=centre + rng.uniform(-0.01, 0.01, 2), tilt_deg=25)
+        f = f"{i:04d}"
+        if i % 3 == 2:
+            cam_T_board = gtsam.Pose3(gtsam.Rot3.Rz(np.pi), np.zeros(3)).compose(cam_T_board)
+            rolled.append(f)
+        base_T_ee[f] = base_T_board.compose(cam_T_board.inverse()).compose(ee_T_cam.inverse())
+        cv2.imwrite(str(root / "images" / "cam0" / f"{f}.png"), render_view(board, cam_T_board, rng=rng))
+    write_robot_poses(root / "robot_poses.csv", base_T_ee)
+    write_dataset_yaml(root, [Camera("cam0", "PINHOLE", *SIZE, (600.0, 600.0, 322.0, 238.0))],
+                       pattern=boards.to_pattern(board))
+    return root, ee_T_cam, rolled
+
+
+def test_turned_detections_resolved_by_the_robot_motion(turned_rig):
+    """Before: the detections as found (a third turned) send OpenCV's five solvers centimetres
+    apart. After pattern.detect resolves each image's order against the robot's motion, the turned
+    ones are exactly the rolled views and the five agree with the truth within 1 mm."""
+    root, truth, rolled = turned_rig
+    ds = load_dataset(root)
+    board = boards.from_pattern(ds.pattern)
+    raw = []
+    for f in ds.frames:
+        uv, ids = boards.detect(cv2.imread(str(ds.image_path("cam0", f)), cv2.IMREAD_GRAYSCALE), board)
+        raw.append(pattern.Detection(f, uv, pnp(board, uv, ids), 0.0, ids))
+    before = {}
+    for m in pattern.OPENCV_METHODS:
+        try:
+            before[m] = pattern.opencv_hand_eye(ds, raw, m)
+        except cv2.error:  # andreff: "determinant(R) is null", as on the users' recordings
+            pass
+    spread = max(np.linalg.norm(a.translation() - b.translation()) for a in before.values() for b in before.values())
+    assert len(before) < 5 or spread > 0.01, spread * 1e3
+    assert max(pose_error(X, truth)[0] for X in before.values()) > 0.01
+    dets = pattern.detect(ds, "cam0")
+    turned = [a.frame for a, b in zip(raw, dets) if not np.allclose(a.uv, b.uv)]
+    assert turned == rolled or sorted(turned) == sorted(set(ds.frames) - set(rolled))
+    for m in pattern.OPENCV_METHODS:
+        et, er = pose_error(pattern.opencv_hand_eye(ds, dets, m), truth)
+        assert et < 1e-3 and er < 0.1, (m, et * 1e3, er)
+
+
+def test_import_rwhe_resolves_the_turned_board(turned_rig, tmp_path, capsys):
+    """The same recording as rwhe files, the convention forced as published (base_T_ee, m): the
+    turned detections are renumbered before the convention is checked and the lens refined, so
+    the forced metres stand (they were overridden by mm before) and the lens lands on the truth."""
+    from calib3r_graph.cli import main
+
+    root, _, rolled = turned_rig
+    src = tmp_path / "raw"
+    src.mkdir()
+    ds = load_dataset(root)
+    for i, f in enumerate(ds.frames, 1):
+        (src / f"{i:02d}.png").write_bytes(ds.image_path("cam0", f).read_bytes())
+    (src / "RobotPosesVec.txt").write_text("\n".join(" ".join(f"{x:.12f}" for x in ds.base_T_ee[f].matrix().ravel())
+                                                     for f in ds.frames) + "\n")
+    (src / "squaresize.txt").write_text("30mm")
+    assert main(["import", "rwhe", str(src), str(tmp_path / "ds"), "--board", "8x6", "--unit", "m",
+                 "--direction", "base_T_ee"]) == 0
+    out = capsys.readouterr().out
+    assert "using 'as given (base_T_ee), m' (forced, and checked" in out
+    rolled = [f"{int(f) + 1:04d}" for f in rolled]  # rwhe's images are numbered from 1
+    assert f"3 of 9 detections renumbered to agree with the robot's motion ({', '.join(rolled)})" in out
+    got = load_dataset(tmp_path / "ds")
+    assert got.meta["source"]["board_turns"] == {"looks_the_same_turned_by_deg": 180, "renumbered": rolled}
+    np.testing.assert_allclose(np.diag(got.cameras["cam0"].K)[:2], [600.0, 600.0], rtol=0.005)
+    np.testing.assert_allclose(got.cameras["cam0"].K[:2, 2], [322.0, 238.0], atol=2.0)

@@ -153,14 +153,16 @@ def test_intrinsics_files(tmp_path):
     (tmp_path / "camchain.yaml").write_text(yaml.safe_dump(kalibr))
     cams = read_intrinsics(tmp_path / "camchain.yaml")
     assert [c.params[0] for c in cams] == [600.0, 601.0] and cams[1].params[4:] == expect[4:]
-    # k3 that moves the corners by more than a pixel: refused; a negligible one: dropped
-    ros["distortion_coefficients"]["data"] = [0.1, -0.2, 0.001, 0.002, 0.05]
+    # the whole OpenCV model is kept: k3 (plumb_bob's fifth), the rational k4-k6; thin prism refused
+    for coeffs, dist in [([0.1, -0.2, 0.001, 0.002, 0.05], 5), ([0.1, -0.2, 0.001, 0.002, 0.05, 0.01, 0, 0], 8),
+                         ([0.1, -0.2, 0.001, 0.002, 0.0, 0.0, 0.0, 0.0], 4)]:
+        ros["distortion_coefficients"]["data"] = coeffs
+        (tmp_path / "k3.yaml").write_text(yaml.safe_dump(ros))
+        assert read_intrinsics(tmp_path / "k3.yaml")[0].params == (*expect[:4], *coeffs[:dist])
+    ros["distortion_coefficients"]["data"] = [0.1, -0.2, 0.001, 0.002, 0.05, 0, 0, 0, 1e-3, 0, 0, 0]
     (tmp_path / "k3.yaml").write_text(yaml.safe_dump(ros))
-    with pytest.raises(InputError, match="move the image corners by up to"):
+    with pytest.raises(InputError, match="thin-prism"):
         read_intrinsics(tmp_path / "k3.yaml")
-    ros["distortion_coefficients"]["data"] = [0.1, -0.2, 0.001, 0.002, 1e-6]
-    (tmp_path / "k3.yaml").write_text(yaml.safe_dump(ros))
-    assert read_intrinsics(tmp_path / "k3.yaml")[0].params == expect
     kalibr["cam0"]["distortion_model"] = "equidistant"
     (tmp_path / "fish.yaml").write_text(yaml.safe_dump(kalibr))
     with pytest.raises(InputError, match="fisheye"):

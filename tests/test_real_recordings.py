@@ -82,7 +82,7 @@ def test_rwhe_patternless_agrees_with_the_pattern_reference(tmp_path):
 @pytest.mark.slow
 def test_tabb_patternless_rotation_agrees_with_the_pattern_reference(tmp_path):
     """tabb_ds1, end to end: the rotation meets the 0.3 deg acceptance. The translation is
-    2.1 cm from pattern-ba, which this recording cannot decide (README, Real recordings: both
+    2.1 cm from pattern-ba, which this recording cannot decide (docs/real-recordings.md: both
     methods move 5-25 mm between halves of the data and noise models); the bound only guards
     that figure."""
     errs = import_and_compare(tmp_path, "tabb", "tabb_ds1", None, "park,pattern-ba,calib3r-graph")

@@ -2,7 +2,7 @@
 headless Chromium (no JavaScript error, the expected traces in the 3D plot, a screenshot).
 
 The browser tests skip where no Chromium is installed; ``scripts/setup.sh`` installs Debian's
-``chromium`` package. Regenerate the README's screenshot with
+``chromium`` package. Regenerate docs/report.md's screenshot with
 ``.venv/bin/python tests/test_report.py docs/report_sample.png``.
 """
 
@@ -235,7 +235,7 @@ def test_compare_report_in_chromium(compare_report, tmp_path):
     assert {t["name"] for t in plots["compare-sweep"]["traces"]} == {"tsai", "calib3r-graph"}
 
 
-if __name__ == "__main__":  # regenerate the README's screenshot: python tests/test_report.py docs/report_sample.png
+if __name__ == "__main__":  # regenerate docs/report.md's screenshot: python tests/test_report.py docs/report_sample.png
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -8,11 +8,18 @@ Methods (names as written to comparison.json):
   jcr-predictions  the same two stages on the trajectory from our predictions (pairwise Sim(3) +
                    spanning tree), without the joint graph
   calib3r-graph    ours
-A method that cannot run (no pattern, no images) is reported with status "error: ...".
+A method that cannot run (no pattern, no images) is reported with status "error: ...". Every method
+runs under one guard (:func:`run_method`, :func:`board_check`): a library exception, a failure OpenCV
+only prints, a non-finite result, a reflection, a flange motion that cannot fix the hand-eye, and a
+result whose own AX = XB residual on the board is absurd are "failed: <reason>", never "ok".
 """
 
+import contextlib
 import dataclasses
 import logging
+import os
+import re
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -20,7 +27,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from calib3r_graph.errors import Calib3rError, SolveError
+from calib3r_graph.errors import Calib3rError, SolveError, library_error
 from calib3r_graph.geometry import hand_eye_rotation
 from calib3r_graph.io.dataset import ee_T_cam_by_camera, subset_dataset
 from calib3r_graph.io.predictions import Predictions, split_view_id, subset_predictions
@@ -69,12 +76,122 @@ def two_stage_hand_eye(trajectory: dict, base_T_ee: dict, scales=np.logspace(-4,
     return out
 
 
+class MethodFailed(SolveError):
+    """A method ran, and what it returned cannot be right (compare reports "failed: <reason>")."""
+
+
+# A result is absurd when it fits its own data this many times worse than the data allow: the
+# per-image fit (PnP) for pattern-ba's corner noise, the noise of PnP and of the robot and the best
+# method for the AX = XB residual. Valid methods fit the same equations, so they differ by a small
+# factor: on rwhe_kuka_1 and tabb_ds1, whole and halved, every pattern method's rotation residual is
+# 1.2-2.1x the predicted noise and its translation residual within 2.4x of the best method's
+# (docs/compare.md). A wrong answer (a flipped board, a solver that gave up) is 1000x off.
+ABSURD_FACTOR = 10.0
+# OpenCV reports some failures only by printing them (calibrateHandEye's Tsai returns R = I, t = 0
+# after "Hand-eye calibration failed! Not enough informative motions--include larger rotations.").
+PRINTED_FAILURE = re.compile(r"[\w-]*\s*calibration failed[^\n]*", re.IGNORECASE)
+# What a method can raise when it breaks on the data (OpenCV, GTSAM's RuntimeError, numpy);
+# anything else is a bug and is not hidden.
+METHOD_EXCEPTIONS = (np.linalg.LinAlgError, RuntimeError, ValueError, ArithmeticError)
+
+
+@contextlib.contextmanager
+def printed_output():
+    """Capture what libraries print on stdout and stderr inside the block, at the file-descriptor
+    level (C++ code writes there, past Python's sys.stdout); yields a list that holds the text
+    afterwards. The text is passed on to stderr, so nothing the user would have seen is lost."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    out = []
+    try:
+        saved = [os.dup(1), os.dup(2)]
+    except OSError:  # no standard descriptors to capture (a closed stdout): nothing printed can be read
+        yield [""]
+        return
+    with tempfile.TemporaryFile() as tmp:
+        try:
+            os.dup2(tmp.fileno(), 1)
+            os.dup2(tmp.fileno(), 2)
+            yield out
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            tmp.seek(0)
+            out.append(tmp.read().decode(errors="replace"))
+            if out[0]:
+                sys.stderr.write(out[0])
+                sys.stderr.flush()
+
+
+def _exception_reason(e) -> str:
+    described = library_error(e)
+    if described is not None:
+        return described[0]
+    first = next((line.strip() for line in str(e).splitlines() if line.strip()), "")
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
+
+
+def check_result(X: dict, cov: dict):
+    """MethodFailed unless every camera's ee_T_cam is finite and a rotation (det R = +1, R^T R = I,
+    within 1e-6) and every covariance is finite."""
+    for c, T in X.items():
+        M = np.asarray(T.matrix())
+        if not np.all(np.isfinite(M)):
+            raise MethodFailed(f"{c}: the result is not finite (NaN or inf in ee_T_cam)")
+        R = M[:3, :3]
+        det = float(np.linalg.det(R))
+        if abs(det - 1) > 1e-6 or np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
+            raise MethodFailed(f"{c}: the result is " + (f"a reflection (det R = {det:.3f})" if det < 0 else
+                                                         f"not a rotation (det R = {det:.6f})"))
+    for c, C in cov.items():
+        if not np.all(np.isfinite(np.asarray(C))):
+            raise MethodFailed(f"{c}: its covariance is not finite (±inf or NaN sigmas)")
+
+
+def _check_motion(base_T_ee: dict, frames):
+    if not rotates_about_two_axes(base_T_ee, frames):
+        raise MethodFailed(f"the flange rotates about fewer than two axes among the {len(set(frames))} poses it "
+                           "used: AX = XB leaves the hand-eye undetermined")
+
+
 def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrinsics=False):
     """({camera: ee_T_cam}, {camera: 6x6 covariance}) of one method on the given frames (all if
     None); the covariance is empty for methods that do not estimate one.
 
+    Under the guard every method shares: SolveError when the method cannot run (no pattern, no
+    predictions); MethodFailed when it breaks on the data (an OpenCV or GTSAM exception, a failure
+    OpenCV only prints) or returns what cannot be right (check_result, a motion about fewer than
+    two axes, pattern-ba's corner noise far above the PnP fit's).
+
     ``detections``: a dict shared between calls, so the board is detected once per frame set.
     """
+    try:
+        with printed_output() if name in PATTERN_METHODS else contextlib.nullcontext([""]) as printed:
+            X, cov, used = _run_method(name, ds, preds, noise, frames, detections, hold_intrinsics)
+    except Calib3rError:
+        raise
+    except METHOD_EXCEPTIONS + _library_exceptions() as e:
+        raise MethodFailed(_exception_reason(e)) from e
+    said = PRINTED_FAILURE.search(printed[0] if printed else "")
+    if said:
+        raise MethodFailed(f"OpenCV printed '{said.group(0).strip()}'")
+    for poses in used:  # the frames each camera's result rests on (the board's, for the pattern methods)
+        _check_motion(ds.base_T_ee, poses)
+    check_result(X, cov)
+    return X, cov
+
+
+def _library_exceptions() -> tuple:
+    import cv2
+
+    return (cv2.error,)
+
+
+def _run_method(name, ds, preds, noise, frames, detections, hold_intrinsics):
     from calib3r_graph.evaluation import pattern
 
     sub = subset_dataset(ds, frames) if frames is not None else ds
@@ -87,19 +204,25 @@ def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrin
             t = time.perf_counter()
             detections[key] = {c: pattern.detect(sub, c) for c in sub.cameras}
             detections[("seconds",) + key] = time.perf_counter() - t
-        dets = detections[key]
-        if name != "pattern-ba":
-            return {c: pattern.opencv_hand_eye(sub, d, name) for c, d in dets.items() if len(d) >= 3}, {}
-        init = {c: pattern.opencv_hand_eye(sub, d, "park") for c, d in dets.items() if len(d) >= 3}
-        if not init:
+        dets = {c: d for c, d in detections[key].items() if len(d) >= 3}
+        if not dets:
             raise SolveError("the board is not found in enough images")
-        res = pattern.pattern_ba(sub, {c: dets[c] for c in init}, noise, init, refine_intrinsics=not hold_intrinsics)
-        return res.ee_T_cam, res.covariance
+        used = [[x.frame for x in d] for d in dets.values()]
+        if name != "pattern-ba":
+            return {c: pattern.opencv_hand_eye(sub, d, name) for c, d in dets.items()}, {}, used
+        for poses in used:  # before park's start, which a degenerate motion makes NaN
+            _check_motion(sub.base_T_ee, poses)
+        init = {c: pattern.opencv_hand_eye(sub, d, "park") for c, d in dets.items()}
+        check_result(init, {})  # a broken start is not pattern-ba's answer
+        res = pattern.pattern_ba(sub, dets, noise, init, refine_intrinsics=not hold_intrinsics)
+        _check_pattern_ba(res, dets)
+        return res.ee_T_cam, res.covariance, used
     if name == "jcr-colmap":
         from calib3r_graph.frontends.colmap import colmap_trajectory
 
         traj = colmap_trajectory(sub)
-        return two_stage_hand_eye({v: gtsam.Pose3(T) for v, T in traj.items()}, sub.base_T_ee), {}
+        return two_stage_hand_eye({v: gtsam.Pose3(T) for v, T in traj.items()}, sub.base_T_ee), {}, \
+            [[split_view_id(v)[1] for v in traj]]
     if preds is None:
         raise SolveError("no predictions")
     p = subset_predictions(preds, sub.base_T_ee) if frames is not None else preds
@@ -112,15 +235,30 @@ def run_method(name, ds, preds, noise, frames=None, detections=None, hold_intrin
         if not comps:
             raise SolveError("no predicted views for these frames")
         biggest = max(comps, key=len)
-        return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee), {}
+        return two_stage_hand_eye({v: T for v, (T, _) in biggest.items()}, sub.base_T_ee), {}, \
+            [[split_view_id(v)[1] for v in biggest]]
     if name == "calib3r-graph":
         from calib3r_graph.solver.solve import SolveOptions, solve
 
         sol = solve(sub, p, SolveOptions(noise=noise, progress=False))
         if frames is None and ds.pattern and detections is not None:
             _metric_scale(name, sub, p, sol, detections)
-        return sol.ee_T_cam, sol.covariance
+        return sol.ee_T_cam, sol.covariance, []  # solve checks its own motion (uncertainty.check_motion)
     raise ValueError(name)
+
+
+def _check_pattern_ba(res, dets: dict):
+    """pattern-ba's calibrated corner noise against the per-image PnP fit's (which fits each image
+    alone, so it is the least the corners allow): a joint fit ABSURD_FACTOR x worse, or not finite,
+    has not found a mount that explains the images."""
+    uv_rms = np.sqrt(np.mean([d.reprojection_px ** 2 for ds_ in dets.values() for d in ds_]))
+    figures = [res.corner_sigma_px, res.robot_noise_factor, res.board_scale]
+    if not np.all(np.isfinite(figures)):
+        raise MethodFailed(f"non-finite fit (corner noise {res.corner_sigma_px:.3g} px, robot poses "
+                           f"{res.robot_noise_factor:.3g}x their sigma, board scale {res.board_scale:.3g})")
+    if res.corner_sigma_px > ABSURD_FACTOR * uv_rms:
+        raise MethodFailed(f"corner noise {res.corner_sigma_px:.3g} px is {res.corner_sigma_px / uv_rms:.0f}x the "
+                           f"per-image PnP fit's {uv_rms:.3g} px: no mount explains the images and the poses")
 
 
 def _metric_scale(name, ds, preds, sol, detections):
@@ -143,27 +281,128 @@ def _metric_scale(name, ds, preds, sol, detections):
 
 def compare(ds, preds, noise, methods=METHODS, frames=None, hold_intrinsics=False) -> dict:
     """Every method on the same frames; ``hold_intrinsics``: pattern-ba keeps the dataset's camera
-    model instead of refining it (used on halves: the camera is the same camera)."""
-    results, detections = {}, {}
+    model instead of refining it (used on halves: the camera is the same camera). A method that
+    cannot run has status "error: ...", one whose result cannot be right "failed: ..." (run_method,
+    board_check); either way the others go on."""
+    results, detections, solved = {}, {}, {}
+    sub = subset_dataset(ds, frames) if frames is not None else ds
+    key = tuple(sub.base_T_ee)
     for m in methods:
         t = time.perf_counter()
         try:
             X, cov = run_method(m, ds, preds, noise, frames, detections, hold_intrinsics)
             status = "ok" if X else "error: no camera could be calibrated"
-        except (Calib3rError, np.linalg.LinAlgError, RuntimeError, ValueError) as e:
-            X, cov, status = {}, {}, f"error: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+        except MethodFailed as e:
+            X, cov, status = {}, {}, f"failed: {_first_line(e)}"
+        except Calib3rError as e:
+            X, cov, status = {}, {}, f"error: {_first_line(e)}"
         seconds = time.perf_counter() - t - detections.pop(("metric_scale_seconds", m), 0.0)
-        key = ("seconds",) + tuple(subset_dataset(ds, frames).base_T_ee if frames is not None else ds.base_T_ee)
-        if m in PATTERN_METHODS and key in detections and seconds < detections[key]:
-            seconds += detections[key]  # every pattern method pays the (shared) board detection
+        if m in PATTERN_METHODS and ("seconds",) + key in detections and seconds < detections[("seconds",) + key]:
+            seconds += detections[("seconds",) + key]  # every pattern method pays the (shared) board detection
         cams = {c: {"T_ee_cam": x.matrix().tolist()} for c, x in X.items()}
         for c, C in cov.items():  # the method's own uncertainty, where it has one (per axis, ee frame)
             cams[c]["sigma_ee_frame"] = uncertainty_report(X[c], C)["sigma_ee_frame"]
         results[m] = {"cameras": cams, "seconds": seconds, "status": status}
+        if X:
+            solved[m] = X
         if ("metric_scale", m) in detections:  # the reconstruction's δ_s, where the method has one
             results[m]["metric_scale"] = detections.pop(("metric_scale", m))
         log.info("%s: %s (%.1f s)", m, status, results[m]["seconds"])
-    return {"methods": results}
+    out = {"methods": results}
+    if key in detections and solved:
+        check = board_check(sub, detections[key], solved, noise)
+        for m, reason in check["failed"].items():
+            results[m].update(cameras={}, status=f"failed: {reason}")
+            log.warning("%s: failed: %s", m, reason)
+        for m, res in check["residuals"].items():
+            results[m]["board_residual"] = res
+        out["board_allows"] = check["allows"]
+    return out
+
+
+def _first_line(e) -> str:
+    return str(e).splitlines()[0] if str(e) else type(e).__name__
+
+
+def board_residuals(base_T_ee: dict, dets: list, X) -> tuple[float, float]:
+    """A result's own AX = XB residual on the board: the RMS rotation (rad) and translation (m) of
+    ``base_T_board_i = base_T_ee_i ee_T_cam cam_T_board_i`` (each image's PnP) about their mean. The
+    board does not move, so the right ee_T_cam makes them one pose up to the noise of PnP and robot."""
+    from calib3r_graph.geometry import mean_pose
+
+    P = [base_T_ee[d.frame].compose(X).compose(d.cam_T_board) for d in dets]
+    M = mean_pose(P)
+    dev = [M.between(p) for p in P]
+    rot = np.sqrt(np.mean([np.sum(gtsam.Rot3.Logmap(d.rotation()) ** 2) for d in dev]))
+    return float(rot), float(np.sqrt(np.mean([np.sum(d.translation() ** 2) for d in dev])))
+
+
+def board_noise(ds, camera: str, dets: list, noise) -> tuple[float, float]:
+    """What the board allows that residual to be with the right ee_T_cam: the RMS rotation (rad) and
+    translation (m) spread of base_T_board from each image's PnP covariance (its Jacobian, scaled by
+    the image's own reprojection error) and the robot's nominal noise (``noise``; the flange's rotation
+    error moves the board by its distance)."""
+    import cv2
+
+    from calib3r_graph.evaluation.pattern import board_points
+
+    cam, obj_all = ds.cameras[camera], board_points(ds.pattern)
+    var_r, var_t = [], []
+    for d in dets:
+        obj = obj_all if d.ids is None else obj_all[np.asarray(d.ids)]
+        rvec, _ = cv2.Rodrigues(d.cam_T_board.rotation().matrix())
+        _, J = cv2.projectPoints(obj, rvec, d.cam_T_board.translation(), cam.K, cam.dist)
+        J = J[:, :6]
+        n = len(obj)
+        sigma2 = d.reprojection_px ** 2 * n / max(2 * n - 6, 1)  # per image coordinate, less PnP's 6 dof
+        C = sigma2 * np.linalg.pinv(J.T @ J)
+        lever = np.linalg.norm(d.cam_T_board.translation())
+        var_r.append(np.trace(C[:3, :3]) + 3 * np.radians(noise.robot_sigma_deg) ** 2)
+        var_t.append(np.trace(C[3:, 3:]) + 3 * (noise.robot_sigma_mm * 1e-3) ** 2
+                     + 2 * (lever * np.radians(noise.robot_sigma_deg)) ** 2)
+    return float(np.sqrt(np.mean(var_r))), float(np.sqrt(np.mean(var_t)))
+
+
+def board_check(ds, detections: dict, solved: dict, noise) -> dict:
+    """The guard's last part, on the board's motion (needs every method's result): per camera, each
+    result's AX = XB residual (board_residuals) against what the board allows, which is the larger of
+    the PnP and robot noise (board_noise) and the best method's residual. A result ABSURD_FACTOR x
+    beyond it has failed; so has one whose rotation residual is ABSURD_FACTOR x the noise alone (the
+    rotation part needs no scale, unit or robot translation accuracy), even when every method is
+    that far off (a flipped board, mispaired images). Methods that do not use the board are judged
+    by it only where some pattern method fits it.
+
+    Returns ``{"failed": {method: reason}, "residuals": {method: {camera: {"rotation_deg",
+    "translation_mm"}}}, "allows": {camera: {"rotation_deg", "translation_mm", "noise_rotation_deg",
+    "noise_translation_mm", "best"}}}``."""
+    failed, residuals, allows = {}, {}, {}
+    for c, dets in detections.items():
+        if len(dets) < 3:
+            continue
+        res = {m: board_residuals(ds.base_T_ee, dets, X[c]) for m, X in solved.items() if c in X}
+        if not res:
+            continue
+        n_rot, n_t = board_noise(ds, c, dets, noise)
+        fits = {m for m, (r, _) in res.items() if r <= ABSURD_FACTOR * n_rot}
+        board_fits = bool(fits & set(PATTERN_METHODS))  # some method that uses the board fits it
+        judged = {m for m in res if m in PATTERN_METHODS or board_fits}
+        best = min(fits, key=lambda m: res[m][0] / n_rot + res[m][1] / n_t) if fits else None
+        a_rot, a_t = (max(n_rot, res[best][0]), max(n_t, res[best][1])) if best else (n_rot, n_t)
+        allows[c] = {"rotation_deg": float(np.degrees(a_rot)), "translation_mm": a_t * 1e3,
+                     "noise_rotation_deg": float(np.degrees(n_rot)), "noise_translation_mm": n_t * 1e3,
+                     "best": best}
+        for m, (r, t) in res.items():
+            residuals.setdefault(m, {})[c] = {"rotation_deg": float(np.degrees(r)), "translation_mm": t * 1e3}
+            if m not in judged or m in failed:
+                continue
+            what = f"{c}: its own AX = XB residual on the board is {np.degrees(r):.3g} deg / {t * 1e3:.3g} mm RMS"
+            if m not in fits:
+                failed[m] = (f"{what}, {r / n_rot:.0f}x the {np.degrees(n_rot):.2g} deg that the PnP and robot "
+                             "noise allow (a flipped board, mispaired images and poses, or a solver that gave up)")
+            elif r > ABSURD_FACTOR * a_rot or t > ABSURD_FACTOR * a_t:
+                failed[m] = (f"{what}, {max(r / a_rot, t / a_t):.0f}x what the board allows ({np.degrees(a_rot):.2g} "
+                             f"deg / {a_t * 1e3:.2g} mm: the best method, {best}, or the PnP and robot noise)")
+    return {"failed": failed, "residuals": residuals, "allows": allows}
 
 
 def errors_against(result: dict, reference: dict) -> dict:

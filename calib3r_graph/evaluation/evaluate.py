@@ -131,14 +131,17 @@ def _triangulate(rays_by_view: list) -> np.ndarray:
     b = np.zeros((n, 3))
     count = np.zeros(n, int)
     for o, dirs, ok in rays_by_view:
-        u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        norm = np.linalg.norm(dirs, axis=1)
+        ok = ok & (norm > 0)  # a point this view does not see has no ray (its direction is zero)
+        u = dirs[ok] / norm[ok, None]
         P = np.eye(3) - u[:, :, None] * u[:, None, :]  # projector orthogonal to each ray
-        A[ok] += P[ok]
-        b[ok] += P[ok] @ o
+        A[ok] += P
+        b[ok] += P @ o
         count += ok
     out = np.full((n, 3), np.nan)
     good = count >= 2
-    good[good] &= np.linalg.cond(A[good]) < 1e6
+    sv = np.linalg.svd(A[good], compute_uv=False)  # near-parallel rays: no intersection (condition >= 1e6)
+    good[good] &= sv[:, -1] > 1e-6 * sv[:, 0]
     out[good] = np.linalg.solve(A[good], b[good][:, :, None])[:, :, 0]
     return out
 

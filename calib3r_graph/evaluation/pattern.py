@@ -72,12 +72,13 @@ def detect(ds, camera: str, frames=None) -> list:
         err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - uv) ** 2, 1))))
         R, _ = cv2.Rodrigues(rvec)
         out.append(Detection(f, uv, gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()), err, ids))
-    return out
+    # a board that looks the same turned by 180°: each image's corner order from the robot's motion
+    return boards.unturn_detections(board, out, ds.base_T_ee, cam.K, cam.dist, ds.root / "dataset.yaml")
 
 
 def camera_intrinsics(cam) -> np.ndarray:
-    """The OPENCV model's eight parameters of a camera (PINHOLE: no distortion)."""
-    return np.array([*cam.params[:4], *cam.dist], dtype=float)
+    """The OPENCV model's eight parameters of a camera (PINHOLE: no distortion), FULL_OPENCV's twelve."""
+    return np.array(cam.params if cam.model == "FULL_OPENCV" else [*cam.params[:4], *cam.dist[:4]], dtype=float)
 
 
 def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
@@ -94,10 +95,34 @@ def opencv_hand_eye(ds, detections, method: str) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(R), t.ravel())
 
 
+HELD = 1e-6  # a prior this tight holds a lens coefficient at its given value
+
+
+def lens_sigmas(cam) -> np.ndarray:
+    """The prior sigmas of a camera's lens coefficients in pattern_ba: 0.5 on k1 and k2, 0.01 on p1 and
+    p2 (OPENCV, FULL_OPENCV); FULL_OPENCV's k3 and rational k4-k6 are held at their given values, and
+    PINHOLE stays a pinhole.
+
+    Why k3-k6 are held (a FULL_OPENCV camera's come from a file, a factory model or a full
+    calibration, which a board's views rarely improve on): on 25 simulated views of a 9x6 board
+    0.3-0.6 m from a 640x480 camera with f = 460 px and a RealSense-like k3 = -0.0236 (board in
+    the middle of the image, 3-4 seeds), refining k3 under a 0.5 prior spreads it over -0.18 to
+    -0.04, under a 0.05 prior biases it to -0.03 to -0.06, and refining k4-k6 too makes them
+    non-zero, while the hand-eye moves by under 0.02 mm. On 9 rendered views with the board in
+    the image's corners (tests/test_user_formats.py), refining k3 lands at -0.0221 and k4-k6 at
+    -0.010, 0.011, 0.002 (truth 0), moving the hand-eye from 0.67 to 0.70 mm off the truth. Only a
+    wrong given k3 is helped (given 0: 1.18 mm held, 0.70 mm refined), and a 4-coefficient model
+    stays OPENCV, whose k1, k2 are refined as before.
+    """
+    if cam.model == "PINHOLE":
+        return np.full(4, HELD)
+    return np.r_[0.5, 0.5, 0.01, 0.01, np.full(4 if cam.model == "FULL_OPENCV" else 0, HELD)]
+
+
 @dataclass
 class PatternBAResult:
     ee_T_cam: dict  # camera -> Pose3
-    intrinsics: dict  # camera -> [fx, fy, cx, cy, k1, k2, p1, p2]
+    intrinsics: dict  # camera -> [fx, fy, cx, cy, k1, k2, p1, p2] (FULL_OPENCV: and k3, k4, k5, k6)
     covariance: dict  # camera -> 6x6 of ee_T_cam (GTSAM tangent): model + systematic + board scale; {} if unobservable
     corner_sigma_px: float = 0.5  # calibrated corner noise
     robot_noise_factor: float = 1.0  # robot sigma used / nominal
@@ -107,6 +132,7 @@ class PatternBAResult:
     covariance_model: dict = None  # camera -> 6x6 marginal of the noise model alone (covariance adds the rest)
     board_scale_estimate: dict = None  # the robot's measurement of the scale and how it was combined
     systematic: dict = None  # camera -> the kinematic error field's summary (systematic.py)
+    intrinsics_sigma: dict = None  # camera -> posterior 1-sigma of intrinsics' entries ({} if not refined/unobservable)
 
 
 def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px=0.5, iterations=100,
@@ -114,9 +140,10 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
                board_scale_tolerance=BOARD_SCALE_TOLERANCE) -> "PatternBAResult":
     """Joint adjustment over every camera that saw the board.
 
-    With ``refine_intrinsics`` each camera's whole OPENCV model (fx, fy, cx, cy, k1, k2, p1,
-    p2) is adjusted too, on the raw corners, under a weak prior at the given values (3 % of f,
-    2 % of the image size, 0.5 on k1 and k2, 0.01 on p1 and p2): the robot's metric motion
+    With ``refine_intrinsics`` each camera's OPENCV model (fx, fy, cx, cy, k1, k2, p1, p2) is
+    adjusted too, on the raw corners, under a weak prior at the given values (3 % of f, 2 % of
+    the image size, 0.5 on k1 and k2, 0.01 on p1 and p2; a FULL_OPENCV camera's k3-k6 are held
+    at their given values, see lens_sigmas): the robot's metric motion
     separates focal length from board distance, which a board-only calibration cannot do
     when the board is small and far. The distortion is refined with the focal length and
     principal point because it acts on normalised coordinates: new K with old distortion
@@ -168,8 +195,7 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
         if refine_intrinsics:  # weak prior at the given intrinsics
             for j, c in enumerate(cams):
                 cam = ds.cameras[c]
-                lens = [0.5, 0.5, 0.01, 0.01] if cam.model == "OPENCV" else [1e-6] * 4  # PINHOLE stays a pinhole
-                sig = [0.03 * cam.K[0, 0], 0.03 * cam.K[1, 1], 0.02 * cam.width, 0.02 * cam.height, *lens]
+                sig = [0.03 * cam.K[0, 0], 0.03 * cam.K[1, 1], 0.02 * cam.width, 0.02 * cam.height, *lens_sigmas(cam)]
                 graph.add(gtsam.PriorFactorVector(gtsam.symbol("k", j), camera_intrinsics(cam),
                                                   gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))))
         for i, (j, c, d) in enumerate(views):
@@ -191,7 +217,8 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     # Redundancy of each group: the corners fix each view's pose (and the intrinsics); the
     # robot factors then over-determine the views beyond ee_T_cam and the board pose.
     n_corners = sum(len(d.uv) for _, _, d in views)
-    redundancy_board = max(2 * n_corners - 6 * len(views) - 8 * len(cams) * refine_intrinsics - estimate_board_scale, 1)
+    free = sum(4 + int(np.sum(lens_sigmas(ds.cameras[c]) > HELD)) for c in cams) * refine_intrinsics
+    redundancy_board = max(2 * n_corners - 6 * len(views) - free - estimate_board_scale, 1)
     redundancy_robot = max(6 * len(views) - 6 * len(cams) - 6, 1)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(iterations)
@@ -258,9 +285,12 @@ def pattern_ba(ds, detections_by_cam: dict, noise, init_ee_T_cam: dict, sigma_px
     covariance = {c: C + sys_err[c].covariance + scale_term.get(c, 0.0) for c, C in covariance_model.items()}
     for c, k in intrinsics.items():
         if refine_intrinsics:
-            sig = intrinsics_sigma.get(c, np.full(8, np.nan))
+            sig = intrinsics_sigma.get(c, np.full(len(k), np.nan))
             log.info("pattern-ba: %s intrinsics fx %.1f±%.1f fy %.1f±%.1f cx %.1f±%.1f cy %.1f±%.1f, k1 %.4f±%.4f "
-                     "k2 %.4f±%.4f p1 %.5f±%.5f p2 %.5f±%.5f", c, *np.ravel(np.column_stack([k, sig])))
+                     "k2 %.4f±%.4f p1 %.5f±%.5f p2 %.5f±%.5f" + " k%d %.4f±%.4f" * (len(k) - 8), c,
+                     *np.ravel(np.column_stack([k, sig])[:8]),
+                     *[x for i in range(8, len(k)) for x in (i - 4, k[i], sig[i])])
     return PatternBAResult({c: values.atPose3(gtsam.symbol("e", j)) for j, c in enumerate(cams)}, intrinsics,
                            covariance, px, float(np.sqrt(robot_scale)), board_scale, board_scale_sigma, chi2,
-                           covariance_model, scale_info, {c: e.to_json() for c, e in sys_err.items()})
+                           covariance_model, scale_info, {c: e.to_json() for c, e in sys_err.items()},
+                           intrinsics_sigma)

@@ -16,7 +16,7 @@ FRONTENDS = ("rgbd", "colmap", "pairwise")
 def best_frontend(ds) -> str:
     """rgbd where depth exists, else pairwise: on the real recordings it solves every random subset
     of 6-10 views, where COLMAP's mapper often registers too few, and matches colmap on the full
-    recordings (README, *Few views on real recordings*)."""
+    recordings (docs/few-views.md)."""
     return "rgbd" if ds.has_depth() else "pairwise"
 
 

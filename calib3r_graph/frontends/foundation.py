@@ -1,7 +1,7 @@
 """Converters from foundation-model outputs saved where the models run (a GPU machine) into
 ``predictions/<name>/``. No model runs here and no weights are downloaded.
 
-Supported files (see the README for the export snippets):
+Supported files (see docs/frontends.md for the export snippets):
 
 * **VGGT** ``predictions.npz`` as its demo saves it: ``depth`` (S, H, W, 1),
   ``depth_conf`` (S, H, W), ``extrinsic`` (S, 3, 4) camera-from-world, ``intrinsic``
@@ -137,7 +137,7 @@ def convert(kind: str, path, ds, name=None, order=None, vggt_mode="crop", neighb
     elif kind in ("dust3r", "mast3r"):
         for k in ("depthmaps", "conf", "cam2w", "focals", "pp"):
             if k not in z:
-                raise InputError(path, f"missing array '{k}' (see the README's {kind} export snippet)", k)
+                raise InputError(path, f"missing array '{k}' (see the {kind} export snippet in docs/frontends.md)", k)
         depth, conf, cam2w = z["depthmaps"], z["conf"], z["cam2w"].astype(np.float64)
         if depth.ndim == 4:  # (N, P, H, W): P pairwise predictions per view -> canonical (eq. 1)
             agg = [aggregate_pointmaps(d, c) for d, c in zip(depth, conf)]

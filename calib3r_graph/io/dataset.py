@@ -21,7 +21,9 @@ from calib3r_graph.errors import InputError
 log = logging.getLogger(__name__)
 
 FORMAT = "calib3r-dataset/1"
-CAMERA_MODELS = {"PINHOLE": 4, "OPENCV": 8}
+# COLMAP's names and parameter orders: fx fy cx cy, then OPENCV's k1 k2 p1 p2, then FULL_OPENCV's
+# k3 k4 k5 k6 (OpenCV's rational model; k4-k6 zero is its 5-coefficient plumb_bob)
+CAMERA_MODELS = {"PINHOLE": 4, "OPENCV": 8, "FULL_OPENCV": 12}
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 ROBOT_COLUMNS = ["frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
 UNIT_TO_METRES = {"m": 1.0, "mm": 1e-3}
@@ -38,6 +40,9 @@ class Camera:
     height: int
     params: tuple
     depth_scale: float | None = None
+    # 1-sigma of fx, fy, cx, cy (px), optional: the intrinsics' own uncertainty, which solve
+    # propagates into the total covariance (solver/camera_model.py); None = not stated
+    params_sigma: tuple | None = None
 
     @property
     def K(self) -> np.ndarray:
@@ -46,8 +51,23 @@ class Camera:
 
     @property
     def dist(self) -> np.ndarray:
-        """OpenCV distortion coefficients [k1, k2, p1, p2] (zeros for PINHOLE)."""
+        """OpenCV's distortion coefficients: [k1, k2, p1, p2] (zeros for PINHOLE); FULL_OPENCV's
+        [k1, k2, p1, p2, k3], or all eight with k4, k5, k6 when the rational terms are set."""
+        if self.model == "FULL_OPENCV":
+            return np.array(self.params[4:12] if any(self.params[9:12]) else self.params[4:9])
         return np.array(self.params[4:8] if self.model == "OPENCV" else [0.0] * 4)
+
+
+def opencv_camera(name: str, size, K, dist, depth_scale=None, params_sigma=None) -> Camera:
+    """A Camera from OpenCV's K and distortion coefficients (none, 4, 5 or 8): OPENCV up to k1, k2,
+    p1, p2, FULL_OPENCV (zeros for the unset k3-k6) beyond."""
+    d = np.zeros(4) if dist is None else np.ravel(dist).astype(float)
+    model = "FULL_OPENCV" if d.size > 4 and np.any(d[4:] != 0) else "OPENCV"
+    n = CAMERA_MODELS[model] - 4
+    d = np.r_[d, np.zeros(max(0, n - d.size))][:n]
+    return Camera(name, model, int(size[0]), int(size[1]),
+                  tuple(float(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d)), depth_scale,
+                  None if params_sigma is None else tuple(float(x) for x in params_sigma))
 
 
 @dataclass
@@ -115,7 +135,16 @@ def _parse_camera(entry, path, index) -> Camera:
         depth_scale = float(depth_scale)
     if not re.fullmatch(r"[A-Za-z0-9_.-]+", name):
         raise InputError(path, f"camera name '{name}' must be letters, digits, '_', '.' or '-'", where)
-    return Camera(name, model, width, height, params, depth_scale)
+    params_sigma = entry.get("params_sigma")
+    if params_sigma is not None:
+        try:
+            params_sigma = tuple(float(x) for x in params_sigma)
+        except (TypeError, ValueError):
+            params_sigma = ()
+        if len(params_sigma) != 4 or not all(math.isfinite(x) and x >= 0 for x in params_sigma):
+            raise InputError(path, "params_sigma must be four numbers >= 0: the 1-sigma of fx, fy, cx, cy in px",
+                             where)
+    return Camera(name, model, width, height, params, depth_scale, params_sigma)
 
 
 def load_dataset(root, skip_missing: bool = False) -> Dataset:
@@ -316,6 +345,8 @@ def camera_to_yaml(cam: Camera) -> dict:
          "params": [float(p) for p in cam.params]}
     if cam.depth_scale is not None:
         d["depth_scale"] = cam.depth_scale
+    if cam.params_sigma is not None:
+        d["params_sigma"] = [float(x) for x in cam.params_sigma]
     return d
 
 

@@ -2,7 +2,7 @@
 
 Formats (``--pose-format``), translation first, in the file's unit:
 
-* ``matrix``: a 4x4 row-major matrix (16 numbers; or four lines of four);
+* ``matrix``: a 4x4 matrix (16 numbers, row- or column-major as they show; or four lines of four);
 * ``xyz-quat-xyzw`` and ``xyz-quat-wxyz``: x y z and a unit quaternion;
 * ``xyz-rotvec``: x y z and a rotation vector in radians (UR controllers' ``p[x,y,z,rx,ry,rz]``);
 * ``xyz-euler:ORDER:deg|rad``: x y z a b c. ORDER is three axes about which the angles turn in
@@ -17,7 +17,16 @@ Where the poses come from (``--poses``):
   a header line are skipped), or a JSON/YAML list or ``{frame: pose}`` mapping, or an .npy of
   shape (N, 4, 4) or (N, k);
 * a folder or a glob: one file per frame (.txt, .csv, .npy, .json, .yaml), numbered by the last
-  number in its name.
+  number in its name, or, where the names do not tell the frames apart (every file ``data.json``),
+  in the nearest parent folder's name that does (``pose_07/data.json`` -> 7); a folder without
+  such files is searched one level down (per-frame folders).
+
+In a JSON or YAML mapping (Franka's per-frame ``data.json``) the pose is the entry named by
+``--pose-key`` (dots for nested keys: ``robot.O_T_EE``), else the only entry holding a pose's
+count of numbers, else a known key (``O_T_EE``, libfranka's flange pose). A 4x4 given as 16
+numbers is read row-major or column-major (libfranka documents O_T_EE as column-major), as its
+numbers show: a homogeneous matrix's last row 0 0 0 1 sits at indices 12-15 row-major, at 3, 7,
+11, 15 column-major; all poses of an import must agree.
 
 Each pose is returned as it is written (direction and unit untouched): the importer checks
 both against the images.
@@ -38,6 +47,8 @@ from calib3r_graph.errors import InputError
 FORMAT_HELP = "matrix, xyz-quat-xyzw, xyz-quat-wxyz, xyz-rotvec, xyz-euler:ORDER:deg|rad (e.g. xyz-euler:zyx:deg), visp"
 PER_FRAME_SUFFIXES = (".txt", ".csv", ".dat", ".npy", ".json", ".yaml", ".yml")
 NUMBERS = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+KNOWN_POSE_KEYS = ("O_T_EE",)  # libfranka / franky: the flange in the robot's base frame
+LAST_ROW = {"row-major": [12, 13, 14, 15], "column-major": [3, 7, 11, 15]}  # where 0 0 0 1 sits
 
 
 @dataclass(frozen=True)
@@ -52,6 +63,9 @@ class PoseRecord:
     number: int | None  # frame number from the file (column or name); None: by order
     matrix: np.ndarray  # 4x4 as written: translation in the file's unit
     where: str  # the file and line, for messages
+    key: str | None = None  # the mapping entry the pose was read from, and why (``how``)
+    how: str = ""
+    layouts: frozenset = frozenset()  # a 16-number matrix: the layouts its numbers allow
 
 
 def parse_format(fmt: str) -> PoseFormat:
@@ -70,8 +84,14 @@ def parse_format(fmt: str) -> PoseFormat:
     return PoseFormat(f, 6, (seq, m.group(3) == "deg"))
 
 
-def to_matrix(values, fmt: PoseFormat, where: str) -> np.ndarray:
-    """One pose's numbers -> 4x4 (translation in the file's unit)."""
+def matrix_layouts(values) -> frozenset:
+    """The layouts ('row-major', 'column-major') under which 16 numbers are a homogeneous 4x4."""
+    v = np.asarray(values, dtype=float).ravel()
+    return frozenset(k for k, idx in LAST_ROW.items() if np.allclose(v[idx], [0, 0, 0, 1], atol=1e-6))
+
+
+def to_matrix(values, fmt: PoseFormat, where: str, layout: str = "row-major") -> np.ndarray:
+    """One pose's numbers -> 4x4 (translation in the file's unit); a matrix in ``layout``."""
     v = np.asarray(values, dtype=float).ravel()
     if v.size != fmt.count:
         raise InputError(where, f"expected {fmt.count} numbers for '{fmt.name}', got {v.size}")
@@ -79,11 +99,11 @@ def to_matrix(values, fmt: PoseFormat, where: str) -> np.ndarray:
         raise InputError(where, "NaN or Inf in the pose")
     M = np.eye(4)
     if fmt.name == "matrix":
-        M = v.reshape(4, 4).copy()
+        M = v.reshape(4, 4).copy() if layout == "row-major" else v.reshape(4, 4).T.copy()
         R = M[:3, :3]
         if not np.allclose(M[3], [0, 0, 0, 1], atol=1e-6):
-            raise InputError(where, "the last row of a 4x4 pose must be 0 0 0 1, got "
-                                    + " ".join(f"{x:g}" for x in M[3]))
+            raise InputError(where, "the last row of a 4x4 pose must be 0 0 0 1 (numbers 13-16 row-major, 4, 8, 12, "
+                                    "16 column-major), got " + " ".join(f"{x:g}" for x in M[3]))
         err = np.abs(R @ R.T - np.eye(3)).max()
         if err > 2e-3 or np.linalg.det(R) < 0:
             raise InputError(where, f"the 3x3 block is not a rotation (|R·Rᵀ - I| = {err:.2g}, "
@@ -104,37 +124,112 @@ def to_matrix(values, fmt: PoseFormat, where: str) -> np.ndarray:
     return M
 
 
-def frame_number(path) -> int | None:
-    """The last number in a file name's stem (``im_07.png`` -> 7, ``pose_fPe_12.yaml`` -> 12)."""
-    found = re.findall(r"\d+", Path(path).stem)
+def _last_number(name: str) -> int | None:
+    found = re.findall(r"\d+", name)
     return int(found[-1]) if found else None
 
 
+def frame_number(path) -> int | None:
+    """The last number in a file name's stem (``im_07.png`` -> 7, ``pose_fPe_12.yaml`` -> 12)."""
+    return _last_number(Path(path).stem)
+
+
+def frame_numbers(paths) -> list | None:
+    """The files' frame numbers: the last number in each name's stem where those tell the files
+    apart, else in the nearest parent folder's name that does (``pose_07/image.png`` -> 7);
+    None when no level numbers every file once."""
+    paths = [Path(p) for p in paths]
+    for level in range(max((len(p.parents) for p in paths), default=0)):
+        names = [p.stem if level == 0 else p.parents[level - 1].name if level <= len(p.parents) else "" for p in paths]
+        nums = [_last_number(n) for n in names]
+        if None not in nums and len(set(nums)) == len(nums):
+            return nums
+    return None
+
+
+def _natural(path: Path):
+    """Sort key: numbers by value (pose_2 before pose_10), the rest as text."""
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", str(path))]
+
+
 def expand(spec: str, suffixes) -> list:
-    """The files of a folder or a glob with one of ``suffixes``, sorted by name."""
+    """The files of a folder (or of its subfolders, one per frame, when it holds none itself) or of a
+    glob with one of ``suffixes``, in natural order of their paths."""
     p = Path(spec)
+
+    def keep(files):
+        return [f for f in files if f.is_file() and f.suffix.lower() in suffixes]
+
     if p.is_dir():
-        files = [f for f in p.iterdir() if f.is_file()]
+        files = keep(p.iterdir()) or keep(f for d in p.iterdir() if d.is_dir() for f in d.iterdir())
     elif any(ch in spec for ch in "*?["):
-        files = [Path(f) for f in glob.glob(spec) if Path(f).is_file()]
+        files = keep(Path(f) for f in glob.glob(spec))
     else:
         raise InputError(spec, "no such folder, and not a glob")
-    return sorted((f for f in files if f.suffix.lower() in suffixes), key=lambda f: f.name)
+    return sorted(files, key=_natural)
 
 
-def _flatten_numbers(obj, where):
+def _numbers(obj):
+    """The numbers of a list (nested: a 4x4) or of an OpenCV/ViSP matrix node ({rows, cols, data}); None if not."""
     if isinstance(obj, dict):
-        if "data" in obj:  # ViSP / OpenCV matrices: rows, cols, data
-            obj = obj["data"]
-        else:
-            lists = [v for v in obj.values() if isinstance(v, list)]
-            if len(lists) != 1:
-                raise InputError(where, "expected a list of numbers (or a mapping with one, e.g. 'data')")
-            obj = lists[0]
+        obj = obj.get("data") if "data" in obj else None
+    if obj is None or isinstance(obj, (str, bool)):
+        return None
     try:
         return np.asarray(obj, dtype=float).ravel()
     except (TypeError, ValueError):
-        raise InputError(where, "expected numbers") from None
+        return None
+
+
+def _entries(obj, prefix=""):
+    """{dotted key: numbers or None} of a mapping's leaves (nested mappings walked)."""
+    out = {}
+    for k, v in obj.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, dict) and "data" not in v:
+            out.update(_entries(v, name + "."))
+        else:
+            out[name] = _numbers(v)
+    return out
+
+
+def _listing(entries) -> str:
+    shown = [f"{k} ({'not numbers' if n is None else f'{n.size} numbers'})" for k, n in list(entries.items())[:12]]
+    return ", ".join(shown) + (f" and {len(entries) - 12} more" if len(entries) > 12 else "")
+
+
+def _pose_numbers(obj, fmt: PoseFormat, where, key=None) -> tuple:
+    """(numbers, key, how) of one pose: a list, or a mapping's entry (``key``: dotted, as given)."""
+    if not isinstance(obj, dict) or "data" in obj:  # a list, or ViSP's / OpenCV's {rows, cols, data}
+        if key and isinstance(obj, dict):
+            raise InputError(where, f"no key '{key}' (--pose-key): it holds {_listing(_entries(obj))}")
+        v = _numbers(obj)
+        if v is None:
+            raise InputError(where, "expected numbers")
+        return v, None, ""
+    entries = _entries(obj)
+    if key:
+        if key not in entries:
+            raise InputError(where, f"no key '{key}' (--pose-key); keys found: {_listing(entries)}")
+        if entries[key] is None:
+            raise InputError(where, f"'{key}' does not hold numbers")
+        return entries[key], key, "named by --pose-key"
+    fits = [k for k, v in entries.items() if v is not None and v.size == fmt.count]
+    if len(fits) == 1:
+        return entries[fits[0]], fits[0], f"the only entry of {fmt.count} numbers"
+    known = [k for k in entries if k.split(".")[-1] in KNOWN_POSE_KEYS and entries[k] is not None]
+    if len(known) == 1:
+        return entries[known[0]], known[0], "a known pose key"
+    raise InputError(where, f"{len(fits) or 'no'} entries of {fmt.count} numbers ('{fmt.name}'): name the pose's entry "
+                            f"with --pose-key (dots for nested keys); keys found: {_listing(entries)}")
+
+
+def _record(number, values, fmt: PoseFormat, where: str, key=None, how="") -> PoseRecord:
+    """A pose record; a 16-number matrix read in the one layout its numbers allow (row-major if both)."""
+    v = np.asarray(values, dtype=float).ravel()
+    layouts = matrix_layouts(v) if fmt.name == "matrix" and v.size == 16 else frozenset()
+    layout = "column-major" if layouts == {"column-major"} else "row-major"
+    return PoseRecord(number, to_matrix(v, fmt, where, layout), where, key, how, layouts)
 
 
 def _load_structured(path: Path):
@@ -182,8 +277,8 @@ def _records_from_text(path: Path, fmt: PoseFormat) -> list:
         if len(flat) % fmt.count:
             raise InputError(path, f"{len(flat)} numbers over lines shorter than a pose: not a whole number of "
                                    f"'{fmt.name}' poses ({fmt.count} numbers each)")
-        return [PoseRecord(None, to_matrix(flat[k:k + fmt.count], fmt, f"{path}: line {starts[k]}"),
-                           f"{path}: line {starts[k]}") for k in range(0, len(flat), fmt.count)]
+        return [_record(None, flat[k:k + fmt.count], fmt, f"{path}: line {starts[k]}")
+                for k in range(0, len(flat), fmt.count)]
     out = []
     for i, r in rows:
         where = f"{path}: line {i}"
@@ -191,16 +286,16 @@ def _records_from_text(path: Path, fmt: PoseFormat) -> list:
             if r[0] != int(r[0]) or r[0] < 0:
                 raise InputError(path, f"the first of {len(r)} numbers is taken as the frame number, but it is "
                                        f"{r[0]:g}", f"line {i}")
-            out.append(PoseRecord(int(r[0]), to_matrix(r[1:], fmt, where), where))
+            out.append(_record(int(r[0]), r[1:], fmt, where))
         elif len(r) == fmt.count:
-            out.append(PoseRecord(None, to_matrix(r, fmt, where), where))
+            out.append(_record(None, r, fmt, where))
         else:
             raise InputError(path, f"expected {fmt.count} numbers for '{fmt.name}' (or {fmt.count + 1} with a "
                                    f"frame number first), got {len(r)}", f"line {i}")
     return out
 
 
-def _records_from_structured(path: Path, fmt: PoseFormat) -> list:
+def _records_from_structured(path: Path, fmt: PoseFormat, key=None) -> list:
     data = _load_structured(path)
     if isinstance(data, np.ndarray):
         one = data.ndim == 1 or (fmt.name == "matrix" and data.shape in ((4, 4), (3, 4)))
@@ -210,34 +305,74 @@ def _records_from_structured(path: Path, fmt: PoseFormat) -> list:
         if arr.shape[1] != fmt.count:
             raise InputError(path, f"array of shape {data.shape}: expected (N, {fmt.count})"
                                    + (" or (N, 4, 4)" if fmt.name == "matrix" else ""))
-        return [PoseRecord(None, to_matrix(a, fmt, f"{path}: pose {k}"), f"{path}: pose {k}")
-                for k, a in enumerate(arr)]
+        return [_record(None, a, fmt, f"{path}: pose {k}") for k, a in enumerate(arr)]
+
+    def one(number, obj, where):
+        values, used, how = _pose_numbers(obj, fmt, where, key)
+        return _record(number, values, fmt, where, used, how)
+
     if isinstance(data, dict) and all(re.fullmatch(r"\D*\d+\D*", str(k)) for k in data) and "data" not in data:
-        return [PoseRecord(frame_number(str(k)), to_matrix(_flatten_numbers(v, f"{path}: {k}"), fmt, f"{path}: {k}"),
-                           f"{path}: {k}") for k, v in data.items()]
+        return [one(frame_number(str(k)), v, f"{path}: {k}") for k, v in data.items()]
     if isinstance(data, list) and data and all(isinstance(x, (list, dict)) for x in data):
-        flat = [_flatten_numbers(x, f"{path}: pose {k}") for k, x in enumerate(data)]
-        if not (len(flat) in (3, 4) and all(f.size == 4 for f in flat)):  # not a single nested 4x4 / 3x4
-            return [PoseRecord(None, to_matrix(f, fmt, f"{path}: pose {k}"), f"{path}: pose {k}")
-                    for k, f in enumerate(flat)]
-    return [PoseRecord(None, to_matrix(_flatten_numbers(data, str(path)), fmt, str(path)), str(path))]
+        if not (len(data) in (3, 4) and all(isinstance(x, list) and len(x) == 4 for x in data)):  # not one 4x4 / 3x4
+            return [one(None, x, f"{path}: pose {k}") for k, x in enumerate(data)]
+    return [one(None, data, str(path))]
 
 
-def read_poses(spec: str, fmt: PoseFormat) -> list:
-    """[PoseRecord] from ``--poses``: a file (several poses), or a folder or glob (one file each)."""
+def _check_layouts(records: list) -> list:
+    """One layout for every 16-number matrix: an error when the files mix them or a pose fits neither."""
+    mats = [r for r in records if r.layouts]
+    found = {k: next((r for r in mats if r.layouts == {k}), None) for k in LAST_ROW}
+    if all(found.values()):
+        raise InputError(found["column-major"].where, "this 4x4 is column-major (0 0 0 1 at numbers 4, 8, 12, 16) but "
+                                                      f"{found['row-major'].where} is row-major: one layout for all")
+    if found["column-major"]:  # the poses that fit both (no translation) are read column-major too
+        for r in mats:
+            if len(r.layouts) == 2:
+                r.matrix, r.layouts = r.matrix.T.copy(), frozenset({"column-major"})
+    return records
+
+
+def layout_of(records: list) -> str | None:
+    """'row-major' or 'column-major' for 16-number matrices, else None."""
+    return next((("column-major" if r.layouts == {"column-major"} else "row-major") for r in records if r.layouts),
+                None)
+
+
+def describe(records: list) -> str:
+    """How the poses were read: the key (and why) and the matrices' layout, for the import report."""
+    parts = []
+    keyed = [r for r in records if r.key]
+    if keyed:
+        keys = sorted({r.key for r in keyed})
+        parts.append(f"pose under '{', '.join(keys)}' ({keyed[0].how})")
+    layout = layout_of(records)
+    if layout:
+        parts.append(f"4x4 read {layout} (0 0 0 1 at numbers "
+                     f"{', '.join(str(i + 1) for i in LAST_ROW[layout])})")
+    return "; ".join(parts)
+
+
+def read_poses(spec: str, fmt: PoseFormat, key: str | None = None) -> list:
+    """[PoseRecord] from ``--poses``: a file (several poses), or a folder or glob (one file each).
+    ``key``: the entry of a JSON/YAML mapping that holds the pose (dotted for nested keys)."""
     p = Path(spec)
+    files = [p] if p.is_file() else expand(spec, PER_FRAME_SUFFIXES)
+    text = next((f for f in files if f.suffix.lower() not in (".json", ".yaml", ".yml")), None)
+    if key and text is not None:
+        raise InputError(text, f"--pose-key '{key}' names an entry of a JSON or YAML file, and this is not one")
     if p.is_file():
         if p.suffix.lower() in (".npy", ".json", ".yaml", ".yml"):
-            return _records_from_structured(p, fmt)
-        return _records_from_text(p, fmt)
-    files = expand(spec, PER_FRAME_SUFFIXES)
+            return _check_layouts(_records_from_structured(p, fmt, key))
+        return _check_layouts(_records_from_text(p, fmt))
     if not files:
         raise InputError(spec, f"no pose files ({', '.join(PER_FRAME_SUFFIXES)}) in it")
     out = []
-    for f in files:
-        recs = _records_from_structured(f, fmt) if f.suffix.lower() in (".npy", ".json", ".yaml", ".yml") \
+    for f, n in zip(files, frame_numbers(files) or [None] * len(files)):
+        recs = _records_from_structured(f, fmt, key) if f.suffix.lower() in (".npy", ".json", ".yaml", ".yml") \
             else _records_from_text(f, fmt)
         if len(recs) != 1:
             raise InputError(f, f"one file per frame should hold one pose, this one holds {len(recs)}")
-        out.append(PoseRecord(frame_number(f), recs[0].matrix, str(f)))
-    return out
+        recs[0].number, recs[0].where = n, str(f)
+        out.append(recs[0])
+    return _check_layouts(out)

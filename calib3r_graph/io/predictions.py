@@ -1,5 +1,5 @@
 """Reading and writing ``predictions/<name>/``: per-view canonical depth + confidence and
-the co-visibility graph's pairwise matches (see the dataset format in the README)."""
+the co-visibility graph's pairwise matches (see docs/dataset-format.md)."""
 
 import csv
 import json

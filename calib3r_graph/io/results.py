@@ -32,6 +32,13 @@ def sigma_ee_frame(sig: np.ndarray) -> dict:
             "y_mm": float(sig[4] * 1e3), "z_mm": float(sig[5] * 1e3)}
 
 
+def tangent_in_ee_frame(R_ee_cam, xi) -> dict:
+    """A tangent step [w, v] of ee_T_cam (body frame; rad, m) rotated into the ee frame, signed, in
+    degrees and mm (the keys of sigma_ee_frame)."""
+    R = np.asarray(R_ee_cam)
+    return sigma_ee_frame(np.r_[R @ np.asarray(xi)[:3], R @ np.asarray(xi)[3:]])
+
+
 def uncertainty_report(T_ee_cam, cov) -> dict:
     C = covariance_in_ee_frame(T_ee_cam, cov)
     sig = np.sqrt(np.maximum(np.diag(C), 0))
@@ -52,11 +59,22 @@ def calibration_json(sol, predictions_name: str) -> dict:
         if c in sol.covariance_model:  # the noise model's marginal alone, beside the total
             cams[c]["covariance_model"] = np.asarray(sol.covariance_model[c]).tolist()
             cams[c]["sigma_ee_frame_model"] = uncertainty_report(X, sol.covariance_model[c])["sigma_ee_frame"]
+        if c in sol.systematic:  # the robot error field's share
+            cams[c]["covariance_systematic"] = np.asarray(sol.systematic[c].covariance).tolist()
+            cams[c]["sigma_ee_frame_systematic"] = uncertainty_report(X, sol.systematic[c].covariance)["sigma_ee_frame"]
+        cm = getattr(sol, "camera_model", {}).get(c)
+        if cm is not None:  # the intrinsics' share (solver/camera_model.py); absent when not propagated
+            cams[c]["camera_model"] = cm.to_json()
+            if cm.propagated:
+                cams[c]["covariance_camera_model"] = np.asarray(cm.covariance).tolist()
+                cams[c]["sigma_ee_frame_camera_model"] = uncertainty_report(X, cm.covariance)["sigma_ee_frame"]
     return {"format": "calib3r-calibration/1", "cameras": cams,
             "covariance_convention": "tangent of ee_T_cam, right perturbation T = T_hat Exp([w; v]), "
                                      "order [wx, wy, wz, vx, vy, vz] (rad, m); sigma_ee_frame rotated into the ee frame; "
-                                     "covariance = covariance_model (noise model) + the systematic part "
-                                     "(solver.systematic: kinematic error field measured from the robot residuals)",
+                                     "covariance = covariance_model (noise model) + covariance_systematic "
+                                     "(solver.systematic: kinematic error field measured from the robot residuals), "
+                                     "covered with the jackknife's spread when it ran, + covariance_camera_model "
+                                     "(solver.camera_model: the intrinsics' stated sigma, when given)",
             "metric_scale_meaning": "metres per unit of the frontend's depth (geometric mean over the camera's views)",
             "predictions": predictions_name, "views_dropped": sol.views_dropped,
             "observability": sol.diagnostics, "solver": sol.stats}
@@ -180,12 +198,15 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
                      if sysm.measured else f"robot error field not measurable from {sysm.poses} poses")
             jk = sol.stats.get("jackknife", {}).get(c)
             lines.append(f"        of which noise model t = [{mod['x_mm']:.2f} {mod['y_mm']:.2f} {mod['z_mm']:.2f}] mm, "
-                         f"r = [{mod['rx_deg']:.3f} {mod['ry_deg']:.3f} {mod['rz_deg']:.3f}] deg; the rest: {field}"
+                         f"r = [{mod['rx_deg']:.3f} {mod['ry_deg']:.3f} {mod['rz_deg']:.3f}] deg; "
+                         + _camera_model_share(X, getattr(sol, "camera_model", {}).get(c))
+                         + f"; the rest: {field}"
                          + (f"; the total covers the jackknife of {jk['solves']} leave-one-pose-out solves" if jk else ""))
     for c, X in sol.ee_T_cam.items():
         corr = uncertainty_report(X, sol.covariance[c])["strongest_correlations"][0]
         lines.append(f"  {c}: strongest correlation {corr['axes'][0]}-{corr['axes'][1]} {corr['rho']:+.2f}")
     lines += [f"  ! {m}" for m in sol.diagnostics]
+    lines += [f"  ! left out {d['view']}: {d['reason']}" for d in sol.views_dropped]  # [{"view", "reason"}]
     for c, jk in sol.stats.get("jackknife", {}).items():
         r = jk["ratio_to_reported"]
         lines.append(f"  {c}: jackknife ({jk['solves']} solves) / modelled sigma: rotation "
@@ -193,27 +214,45 @@ def summary_text(sol, ds: Dataset, predictions_name: str) -> str:
     tm = sol.stats["timings_s"]
     lines.append(f"  time: init {tm['initialisation']:.1f} s, optimisation {tm['optimisation']:.1f} s, "
                  f"covariance {tm['covariance']:.1f} s"
-                 + (f", jackknife {tm['jackknife']:.1f} s" if "jackknife" in tm else "") + "; LM iterations "
+                 + (f", jackknife {tm['jackknife']:.1f} s" if "jackknife" in tm else "")
+                 + (f", camera model {tm['camera_model']:.1f} s" if tm.get("camera_model", 0) >= 0.05 else "")
+                 + "; LM iterations "
                  f"{'+'.join(str(r['iterations']) for r in sol.stats['rounds'])}")
     return "\n".join(lines) + "\n"
 
 
-def write_results(out_dir, ds: Dataset, preds: Predictions, sol, write_cloud=True, extra=None) -> str:
+def _camera_model_share(X, cm) -> str:
+    """The summary's words for the camera model's share (solver/camera_model.py)."""
+    if cm is None or not cm.propagated:
+        return ("camera model not in the sigma (no intrinsics sigma: params_sigma in dataset.yaml or "
+                "--intrinsics-sigma-px)")
+    s = uncertainty_report(X, cm.covariance)["sigma_ee_frame"]
+    given = " ".join(f"{x:.2g}" for x in cm.params_sigma)
+    return (f"camera model t = [{s['x_mm']:.2f} {s['y_mm']:.2f} {s['z_mm']:.2f}] mm, r = [{s['rx_deg']:.3f} "
+            f"{s['ry_deg']:.3f} {s['rz_deg']:.3f}] deg (fx fy cx cy ± {given} px, {cm.source})")
+
+
+def write_results(out_dir, ds: Dataset, preds: Predictions, sol, write_cloud=True, extra=None, dense=None) -> str:
     """``extra(stage, calibration, summary, cloud)``: writes more files into the same staging folder,
-    e.g. report.html (calib3r_graph.report.solve_report_writer); ``cloud`` is None without write_cloud."""
+    e.g. report.html (calib3r_graph.report.solve_report_writer); ``cloud`` is None without write_cloud.
+    ``dense(stage) -> (figures, summary lines)``: solve --dense (calib3r_graph.dense), run once the
+    trajectory, views.npz and cloud are staged; its figures go into calibration.json ("dense") and summary.txt."""
     out_dir = Path(out_dir)
     summary = summary_text(sol, ds, preds.name)
     with staged_directory(out_dir) as stage:
         calibration = calibration_json(sol, preds.name)
-        atomic_write_json(stage / "calibration.json", calibration)
         atomic_write_text(stage / "trajectory.csv", trajectory_csv(sol))
         write_views(stage / "views.npz", sol)
-        atomic_write_text(stage / "summary.txt", summary)
         pcd = None
         if write_cloud:
             pcd = point_cloud(ds, preds, sol)
             with atomic_path(stage / "reconstruction.ply") as tmp:
                 write_ply(tmp, pcd.points, pcd.colors)
+        if dense is not None:
+            calibration["dense"], lines = dense(stage)
+            summary += lines
+        atomic_write_json(stage / "calibration.json", calibration)
+        atomic_write_text(stage / "summary.txt", summary)
         if extra is not None:
             extra(stage, calibration, summary, pcd)
     return summary

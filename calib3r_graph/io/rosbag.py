@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.io.dataset import Camera, write_dataset_yaml, write_robot_poses
+from calib3r_graph.io.dataset import opencv_camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.io.output import atomic_path, staged_directory
 
 log = logging.getLogger(__name__)
@@ -223,7 +223,7 @@ def _camera_info(msg, topic: str, size):
     if (int(msg.width), int(msg.height)) != tuple(size):
         raise InputError(topic, f"CameraInfo is for {msg.width}x{msg.height} images but the images are "
                                 f"{size[0]}x{size[1]}")
-    return K, opencv_distortion(D, msg.distortion_model, K, size, topic)
+    return K, opencv_distortion(D, msg.distortion_model, topic)
 
 
 def _nearest(stamps: np.ndarray, t: int, tol_s: float):
@@ -425,6 +425,5 @@ def _cameras(opt, infos, info_topics, sizes, n_cams) -> list:
             raise InputError(opt.depth_topics[j], f"depth is {sizes[('depth', j)][0]}x{sizes[('depth', j)][1]} but "
                                                   f"the images are {size[0]}x{size[1]}: it must be registered to "
                                                   "the colour camera")
-        cams.append(Camera(f"cam{j}", "OPENCV", int(size[0]), int(size[1]),
-                           tuple(float(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist)), depth_scale))
+        cams.append(opencv_camera(f"cam{j}", size, K, dist, depth_scale))
     return cams

@@ -11,6 +11,22 @@ from calib3r_graph.io.predictions import split_view_id
 CAMERA_COLOURS = ["#e8710a", "#7b1fa2", "#00897b", "#c2185b", "#3949ab"]
 AXIS_SCALE = [[0.0, "#d62728"], [0.5, "#2ca02c"], [1.0, "#1f77b4"]]  # x red, y green, z blue
 MAX_CLOUD_POINTS = 40000
+# The dense cloud (dense.ply) is decimated to this many points: ~3.5 MB of the page (float32 xyz in
+# base64 and a '#rrggbb' string per point), so report.html stays well under 10 MB.
+MAX_DENSE_POINTS = 150000
+
+
+def dense_cloud_arrays(result_dir, max_points=MAX_DENSE_POINTS):
+    """The dense cloud of ``result_dir/dense.ply`` as :func:`cloud_arrays` gives it, or None without one."""
+    from pathlib import Path
+
+    path = Path(result_dir) / "dense.ply"
+    if not path.is_file():
+        return None
+    from calib3r_graph.dense.fuse import read_dense_ply
+
+    d = read_dense_ply(path)
+    return cloud_arrays(d["points"], d["colors"], max_points=max_points)
 
 
 def cloud_arrays(points, colours, max_points=MAX_CLOUD_POINTS, seed=0):
@@ -94,24 +110,35 @@ def ellipsoid_mesh(centre, cov, factor, n_u=24, n_v=12):
     return pts, np.array(tri)
 
 
-def scene_figure(sol, base_T_ee, view_grids, position_cov_ee, robot_rows, cloud=None, cloud_colours=None):
+def scene_figure(sol, base_T_ee, view_grids, position_cov_ee, robot_rows, cloud=None, cloud_colours=None, dense=None):
     """The 3D figure. ``view_grids``: view -> (K, width, height) of the grid the view's depth lives on;
     ``position_cov_ee``: camera -> 3x3 covariance of ee_T_cam's translation in the ee frame (m^2);
-    ``robot_rows``: from :func:`~calib3r_graph.report.residuals.robot_pose_residuals`."""
+    ``robot_rows``: from :func:`~calib3r_graph.report.residuals.robot_pose_residuals`; ``dense``: (xyz,
+    colours) of the dense cloud (:func:`dense_cloud_arrays`), shown instead of the sparse cloud, which
+    stays in the legend (click it to show it)."""
     cams = list(sol.ee_T_cam)
     frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
     centres = np.array([T.translation() for T in sol.base_T_cam.values()]
                        + [base_T_ee[f].translation() for f in frames])
     extent = float(np.linalg.norm(np.ptp(centres, axis=0))) if len(centres) > 1 else 0.5
-    if cloud is not None and len(cloud):
-        extent = max(extent, float(np.linalg.norm(np.percentile(cloud, 95, 0) - np.percentile(cloud, 5, 0))))
+    shown = dense[0] if dense is not None and len(dense[0]) else cloud
+    if shown is not None and len(shown):
+        extent = max(extent, float(np.linalg.norm(np.percentile(shown, 95, 0) - np.percentile(shown, 5, 0))))
     size = max(0.06 * extent, 0.01)
     traces = []
+    has_dense = dense is not None and len(dense[0]) > 0
     if cloud is not None and len(cloud):
         marker = dict(size=1.5, color=cloud_colours) if cloud_colours is not None else \
             dict(size=1.5, color=cloud[:, 2], colorscale="Viridis")
         traces.append(go.Scatter3d(x=cloud[:, 0], y=cloud[:, 1], z=cloud[:, 2], mode="markers", marker=marker,
-                                   name=f"point cloud ({len(cloud)} points)", hoverinfo="skip"))
+                                   name=("sparse " if has_dense else "") + f"point cloud ({len(cloud)} points)",
+                                   hoverinfo="skip", visible="legendonly" if has_dense else True))
+    if has_dense:
+        xyz, colours = dense
+        marker = dict(size=1.2, color=colours) if colours is not None else \
+            dict(size=1.2, color=xyz[:, 2], colorscale="Viridis")
+        traces.append(go.Scatter3d(x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], mode="markers", marker=marker,
+                                   name=f"dense cloud ({len(xyz)} points, dense.ply decimated)", hoverinfo="skip"))
     for j, c in enumerate(cams):
         views = sorted(v for v in sol.base_T_cam if split_view_id(v)[0] == c)
         starts, ends, tips = [], [], []

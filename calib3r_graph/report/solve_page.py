@@ -12,7 +12,7 @@ from calib3r_graph.io.output import atomic_write_text
 from calib3r_graph.io.results import AXES, covariance_in_ee_frame, point_cloud
 from calib3r_graph.report.page import Page, esc, finite, fmt
 from calib3r_graph.report.residuals import CHI2_6_99, pair_statistics, robot_pose_residuals
-from calib3r_graph.report.scene import CAMERA_COLOURS, MAX_CLOUD_POINTS, cloud_arrays, scene_figure
+from calib3r_graph.report.scene import CAMERA_COLOURS, MAX_CLOUD_POINTS, cloud_arrays, dense_cloud_arrays, scene_figure
 
 SIGMA_KEYS = ["x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"]
 KIND_PATTERN = {"total": "", "model": "/", "jackknife": "x"}
@@ -22,7 +22,8 @@ def solve_report_writer(ds, preds, sol, noise=None):
     """A ``write_results(..., extra=)`` callback: writes report.html into the staging folder."""
     def write(stage, calibration, summary, cloud=None):
         atomic_write_text(Path(stage) / "report.html",
-                          solve_report_html(ds, preds, sol, calibration, summary, noise, cloud))
+                          solve_report_html(ds, preds, sol, calibration, summary, noise, cloud,
+                                            dense_cloud_arrays(stage)))
     return write
 
 
@@ -37,7 +38,7 @@ def _cloud(ds, preds, sol, cloud):
     return cloud_arrays(np.asarray(cloud.points), np.asarray(cloud.colors))
 
 
-def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=None) -> str:
+def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=None, dense=None) -> str:
     cams = calibration["cameras"]
     robot = robot_pose_residuals(sol, ds.base_T_ee)
     pairs = pair_statistics(sol, preds, noise)
@@ -60,7 +61,7 @@ def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=No
              for v in sol.base_T_cam}
     pos_cov = {c: covariance_in_ee_frame(sol.ee_T_cam[c], np.asarray(cal["covariance"]))[3:, 3:]
                for c, cal in cams.items()}
-    page.add(page.figure(scene_figure(sol, ds.base_T_ee, grids, pos_cov, robot, xyz, colours), "scene3d"))
+    page.add(page.figure(scene_figure(sol, ds.base_T_ee, grids, pos_cov, robot, xyz, colours, dense), "scene3d"))
     page.p("Drag to rotate, scroll to zoom, click a legend entry to hide it. Frustums show every view's "
            "base_T_cam; flange poses are the robot's base_T_ee, red where the robot factor is flagged; each "
            "camera's ee_T_cam is drawn at the first frame's flange, with its 3σ position ellipsoid scaled up "
@@ -72,7 +73,8 @@ def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=No
     page.h2("Summary (as printed)")
     page.add(f"<pre>{esc(summary)}</pre>")
     page.data(finite({"dataset": str(ds.root), "robot_poses": robot, "pairs": pairs,
-                      "chi2_6_99": CHI2_6_99, "cloud_points": int(len(xyz))}))
+                      "chi2_6_99": CHI2_6_99, "cloud_points": int(len(xyz)),
+                      "dense_points": int(len(dense[0])) if dense is not None else 0}))
     return page.html()
 
 

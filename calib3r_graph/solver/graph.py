@@ -63,6 +63,19 @@ class Keys:
     def metric(self, cam):
         return gtsam.symbol("l", self.cameras.index(cam))
 
+    def describe(self, letter: str, index: int) -> str | None:
+        """A GTSAM key of this graph in words that name the view (camera and frame) or the camera,
+        e.g. ("s", 6) -> "the depth scale of view cam0/0006 (camera cam0, frame 0006)"; None if unknown."""
+        views = list(self.view_index)
+        what = {"x": "the pose", "s": "the depth scale", "c": "the depth correction"}.get(letter)
+        if what and 0 <= index < len(views):
+            cam, frame = split_view_id(views[index])
+            return f"{what} of view {views[index]} (camera {cam}, frame {frame})"
+        what = {"e": "ee_T_cam", "l": "metric scale (shared by its views' depth scales)"}.get(letter)
+        if what and 0 <= index < len(self.cameras):
+            return f"camera {self.cameras[index]}'s {what}"
+        return None
+
 
 def point_sqrt_info(obs, K_a, K_b, a_T_b: gtsam.Pose3, scale_ratio_b_to_a: float, noise: NoiseOptions,
                     weights: np.ndarray) -> np.ndarray:

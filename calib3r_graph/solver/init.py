@@ -42,7 +42,7 @@ class Initialisation:
     ee_T_cam: dict  # camera -> Pose3
     components: list  # [[view id, ...], ...]
     inliers: list  # per observation pair: bool mask (or None for a dropped pair)
-    dropped_views: list = field(default_factory=list)
+    dropped_views: list = field(default_factory=list)  # [{"view", "reason"}]
 
 
 def pairwise_sim3(observations, rel_threshold=0.03, seed=0):
@@ -206,4 +206,6 @@ def initialise(views, observations, base_T_ee, robot_file="robot_poses.csv", vis
             depth_scale[v] = lam * s
     inliers = [None if s is None else s[3] for s in sims]
     return Initialisation(base_T_cam, depth_scale, ee_T_cam, usable, inliers,
-                          [v for c in dropped for v in c])
+                          [{"view": v, "reason": "not co-visible with a view of any other robot pose (no pair with "
+                                                 f"{MIN_INLIERS} matches that agree on one similarity)"}
+                           for c in dropped for v in sorted(c)])

@@ -25,6 +25,15 @@ JACKKNIFE_BELOW = 15
 AXES = ("rx_deg", "ry_deg", "rz_deg", "x_mm", "y_mm", "z_mm")
 # Baarda's significance for naming a pose that the rest of the data reject (influential_pose)
 ALPHA = 0.001
+MIN_POSES = 3  # solve.MIN_ROBOT_POSES: a leave-one-out with fewer left is no sample
+# A linearised sample beyond 0.5 rad / 0.5 m is no sample: the first-order model's error grows as
+# |dx|^2 / 2 (12 % at 0.5 rad), and such a step means the rest hardly determines ee_T_cam.
+MAX_STEP = (0.5, 0.5)
+
+
+# How solve's jackknife is computed: "linearised" (one linearisation of the solved graph, a
+# downdate per pose: :func:`linearised_jackknife`) or "resolve" (n solves).
+METHOD = "linearised"
 
 
 def wanted(mode: str, poses: int) -> bool:
@@ -48,6 +57,8 @@ def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> tuple[dict, dict 
     import dataclasses
     import logging
 
+    if METHOD == "linearised" and sol.graph is not None:
+        return linearised_jackknife(sol)
     frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
     xis = {c: [] for c in sol.ee_T_cam}
     fits = {}  # frame left out -> (robot chi2, dof) of that solve
@@ -83,6 +94,102 @@ def _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress):
                 xis[c].append(X)
         if s.stats["noise_calibration"].get("robot_chi2_dof"):
             fits[f] = s.stats["noise_calibration"]["robot_chi2_dof"]
+
+
+def linearised_jackknife(sol) -> tuple[dict, dict | None]:
+    """:func:`jackknife` without re-solving: the same report from one linearisation of ``sol``'s graph.
+
+    At the solution the whitened linear system ``sum_k ||A_k dx - b_k||^2`` has zero gradient,
+    ``sum_k A_k^T b_k = 0``. Leaving frame i out removes the factors F_i that touch its views'
+    variables (its robot pose and rigidity factors, its scene pairs, its depth-correction priors)
+    and those variables; the first-order solution of the rest is
+
+        dx_-i = H_-i^-1 (sum_{k not in F_i} A_k^T b_k) = -H_-i^-1 g_i,   H_-i = H - sum_{k in F_i} A_k^T A_k,
+
+    on the remaining variables (H and g_i from each factor's augmented information, no tall A
+    formed). The scale gauge factors (they tie lambda_j to every view's depth scale) are kept; they
+    do not reach ee_T_cam. Robust weights and noise calibration are held at the full solve's: that
+    is the approximation against the re-solving jackknife (measured in docs/live.md). The robot
+    chi2 without frame i, ``sum ||A_k dx - b_k||^2`` over the remaining robot factors, feeds
+    :func:`influential_pose` as the re-solves' chi2 does (the robot noise level cancels in its F).
+    """
+    out, fits, full = linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam))
+    xis = {c: [sol.ee_T_cam[c].retract(d[c]) for d in out.values()] for c in sol.ee_T_cam}
+    report = _jackknife_report(sol, xis)
+    for rep in report.values():
+        rep["method"] = "linearised"
+    return report, influential_pose(full, fits)
+
+
+def linear_system(graph, values) -> tuple[np.ndarray, dict, list]:
+    """(H, offsets, factors) of ``graph`` linearised at ``values``: the dense information matrix
+    ``H = sum_k A_k^T A_k`` (whitened), {key: (first column, dimension)} in key order, and per factor
+    (keys, its columns, A^T A, A^T b, b^T b), from each factor's augmented information (no tall A)."""
+    from calib3r_graph.solver.systematic import _dim
+
+    lin = graph.linearize(values)
+    offsets, col = {}, 0
+    for k in sorted(graph.keyVector()):
+        offsets[k] = (col, _dim(values, k))
+        col += offsets[k][1]
+    H = np.zeros((col, col))
+    factors = []
+    for i in range(lin.size()):
+        f = lin.at(i)
+        if f is None:
+            continue
+        M = f.augmentedInformation()
+        ks = list(f.keys())
+        idx = np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in ks])
+        d = len(idx)
+        H[np.ix_(idx, idx)] += M[:d, :d]
+        factors.append((ks, idx, M[:d, :d], M[:d, d], M[d, d]))
+    return H, offsets, factors
+
+
+def linearised_leave_one_out(graph, values, keys, views) -> tuple[dict, dict, tuple]:
+    """({frame: {camera: dx of ee_T_cam (6,) without that frame}}, {frame: (robot chi2, dof)
+    without it}, (robot chi2, dof) of all), as :func:`linearised_jackknife` describes. ``keys``: the
+    graph's ``Keys``; ``views``: the solved view ids."""
+    H, offsets, factors = linear_system(graph, values)
+    n = len(H)
+    gauge = {keys.metric(c) for c in keys.cameras}
+    robot_keys = {(keys.hand_eye(split_view_id(v)[0]), keys.pose(v)) for v in views}
+    factors = [(set(ks), idx, A, b, c, tuple(ks) in robot_keys) for ks, idx, A, b, c in factors]
+    by_frame = {}
+    for v in views:
+        kv = {keys.pose(v), keys.scale(v), keys.correction(v)}
+        by_frame.setdefault(split_view_id(v)[1], set()).update(k for k in kv if k in offsets)
+    n_frames = len(by_frame)
+    full = (float(sum(c for _, _, _, _, c, r in factors if r)), 6 * n_frames - 13)
+    out, fits = {}, {}
+    he = {c: keys.hand_eye(c) for c in keys.cameras if keys.hand_eye(c) in offsets}
+    for frame, fkeys in by_frame.items():
+        if n_frames - 1 < MIN_POSES:  # the re-solve would refuse: too few poses left
+            break
+        drop = [fa for fa in factors if fa[0] & fkeys and not fa[0] & gauge]
+        Hm, g = H.copy(), np.zeros(n)
+        for _, idx, AtA, Atb, _, _ in drop:
+            Hm[np.ix_(idx, idx)] -= AtA
+            g[idx] += Atb
+        gone = np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in fkeys])
+        keep = np.setdiff1d(np.arange(n), gone)
+        try:  # Cholesky: the rest must still determine every variable (else the re-solve fails too)
+            L = np.linalg.cholesky(Hm[np.ix_(keep, keep)])
+            dx_keep = -np.linalg.solve(L.T, np.linalg.solve(L, g[keep]))
+        except np.linalg.LinAlgError:
+            continue
+        dx = np.zeros(n)
+        dx[keep] = dx_keep
+        d_he = {c: dx[offsets[k][0]:offsets[k][0] + 6] for c, k in he.items()}
+        if not all(np.all(np.isfinite(d)) and np.linalg.norm(d[:3]) < MAX_STEP[0] and np.linalg.norm(d[3:]) < MAX_STEP[1]
+                   for d in d_he.values()):
+            continue  # without this pose the rest (nearly) does not determine ee_T_cam: no sample
+        out[frame] = d_he
+        chi2 = sum(x @ A @ x - 2 * x @ b + c for ks, idx, A, b, c, r in factors if r and not ks & fkeys
+                   for x in [dx[idx]])
+        fits[frame] = (float(chi2), 6 * (n_frames - 1) - 13)
+    return out, fits, full
 
 
 def _sigmas(X, C) -> dict:

@@ -54,57 +54,286 @@ def _scene_points(sol, view):
     return np.concatenate(pts) * sol.depth_scale[view] if pts else np.zeros((0, 3))
 
 
-def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) -> list:
+def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None):
+    """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
+    overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
+    with its robot pose factor, and a 3D match factor to the existing view that sees most of the
+    same scene (see the module's docstring)."""
+    from calib3r_graph.solver.observations import PairObservations
+
     keys, cameras = sol.keys, list(sol.ee_T_cam)
     ref_cam = cameras[0]
     X = sol.ee_T_cam[ref_cam]
+    C = E.compose(X)
+    k_pose, k_scale = keys_new or (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
+    values = gtsam.Values()
+    cov = robot_pose_noise_covariance(X, np.radians(noise.robot_sigma_deg), noise.robot_sigma_mm * 1e-3)
+    out = [factors.make_robot_pose_factor(E, [keys.hand_eye(ref_cam), k_pose], gtsam.noiseModel.Gaussian.Covariance(cov))]
+    values.insert(k_pose, C)
+    best, best_pts = None, None
+    for v in sol.base_T_cam:
+        if split_view_id(v)[0] != ref_cam:
+            continue
+        P = _scene_points(sol, v)
+        if len(P) == 0:
+            continue
+        K, (h, w) = preds.views[v].K, preds.views[v].depth.shape
+        Q = P @ C.between(sol.base_T_cam[v]).rotation().matrix().T + C.between(sol.base_T_cam[v]).translation()
+        uv = Q[:, :2] / np.maximum(Q[:, 2:3], 1e-9) @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
+        vis = (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        if best_pts is None or vis.sum() > best_pts[0].sum():
+            best, best_pts = v, (vis, P, Q, uv)
+    n_vis = 0 if best_pts is None else int(best_pts[0].sum())
+    if n_vis < MIN_VISIBLE:
+        return out, values, None, n_vis
+    vis, P, Q, uv = best_pts
+    idx = np.flatnonzero(vis)
+    idx = rng.choice(idx, min(len(idx), max_points), replace=False)
+    s_near = sol.depth_scale[best]
+    values.insert(k_scale, s_near)
+    obs = PairObservations(best, "candidate", uv[idx], uv[idx], P[idx] / s_near, Q[idx] / s_near,
+                           np.ones(len(idx)), np.zeros((len(idx), 0)), np.zeros((len(idx), 0)))
+    K = preds.views[best].K
+    W = point_sqrt_info(obs, K, K, sol.base_T_cam[best].between(C), 1.0, noise,
+                        np.full(len(idx), sol.scene_weight_scale))
+    out.append(factors.make_match3d_factor(factors.Match3DMeasurement(obs.pts_a, obs.pts_b, W),
+                                           [keys.pose(best), k_pose, keys.scale(best), k_scale]))
+    return out, values, best, n_vis
+
+
+def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) -> list:
+    keys, cameras = sol.keys, list(sol.ee_T_cam)
     # The same graph's marginals before and after: the noise model's covariance (the systematic
     # part does not shrink with one more pose of the same arm).
     before = [np.asarray(sol.covariance_model.get(c, sol.covariance[c])) for c in cameras]
     logdet_before = sum(np.linalg.slogdet(c)[1] for c in before)
-    ref_views = [v for v in sol.base_T_cam if split_view_id(v)[0] == ref_cam]
     rng = np.random.default_rng(0)
     out = []
     for frame, E in candidates.items():
-        C = E.compose(X)
         graph = gtsam.NonlinearFactorGraph(sol.graph)
         values = gtsam.Values(sol.values)
-        k_pose, k_scale = gtsam.symbol("n", 0), gtsam.symbol("m", 0)
-        cov = robot_pose_noise_covariance(X, np.radians(noise.robot_sigma_deg), noise.robot_sigma_mm * 1e-3)
-        graph.add(factors.make_robot_pose_factor(E, [keys.hand_eye(ref_cam), k_pose],
-                                                 gtsam.noiseModel.Gaussian.Covariance(cov)))
-        values.insert(k_pose, C)
-        # The existing view that sees most of what the candidate would see.
-        best, best_pts = None, None
-        for v in ref_views:
-            P = _scene_points(sol, v)
-            if len(P) == 0:
-                continue
-            K, (h, w) = preds.views[v].K, preds.views[v].depth.shape
-            Q = P @ C.between(sol.base_T_cam[v]).rotation().matrix().T + C.between(sol.base_T_cam[v]).translation()
-            uv = Q[:, :2] / np.maximum(Q[:, 2:3], 1e-9) @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
-            vis = (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            if best_pts is None or vis.sum() > best_pts[0].sum():
-                best, best_pts = v, (vis, P, Q, uv)
-        n_vis = 0 if best_pts is None else int(best_pts[0].sum())
-        if n_vis >= MIN_VISIBLE:
-            vis, P, Q, uv = best_pts
-            idx = np.flatnonzero(vis)
-            idx = rng.choice(idx, min(len(idx), max_points), replace=False)
-            s_near = sol.depth_scale[best]
-            values.insert(k_scale, s_near)
-            from calib3r_graph.solver.observations import PairObservations
-
-            obs = PairObservations(best, "candidate", uv[idx], uv[idx], P[idx] / s_near, Q[idx] / s_near,
-                                   np.ones(len(idx)), np.zeros((len(idx), 0)), np.zeros((len(idx), 0)))
-            K = preds.views[best].K
-            W = point_sqrt_info(obs, K, K, sol.base_T_cam[best].between(C), 1.0, noise,
-                                np.full(len(idx), sol.scene_weight_scale))
-            graph.add(factors.make_match3d_factor(factors.Match3DMeasurement(obs.pts_a, obs.pts_b, W),
-                                                  [keys.pose(best), k_pose, keys.scale(best), k_scale]))
+        new_factors, new_values, best, n_vis = candidate_factors(sol, preds, noise, E, rng, max_points)
+        for f in new_factors:
+            graph.add(f)
+        values.insert(new_values)
         marg = gtsam.Marginals(graph, values)
         after = [marg.marginalCovariance(keys.hand_eye(c)) for c in cameras]
         gain = 0.5 * (logdet_before - sum(np.linalg.slogdet(c)[1] for c in after))
         t_mm, r_deg = largest_sigmas(after)
-        out.append(CandidateScore(frame, float(gain), t_mm, r_deg, best if n_vis >= MIN_VISIBLE else None, n_vis))
+        out.append(CandidateScore(frame, float(gain), t_mm, r_deg, best, n_vis))
     return sorted(out, key=lambda c: -c.information_gain_nats)
+
+
+# ----------------------------------------------------------------------------- guidance (live)
+# Candidate motions: rotations about an axis through the scene's centroid (the camera keeps looking
+# at it from the same distance), 20 and 35 degrees: the range that moves ee_T_cam's translation
+# (uncertainty.systematic_error_gain asks for 20-40 degrees).
+ROTATION_STEPS_DEG = (20.0, 35.0)
+# A new distance must differ from the current one by 10 % or more to measure the scale.
+MIN_DISTANCE_CHANGE = 0.10
+ORIENTATION_MARGIN_DEG = 15.0  # the visited orientations, grown by this, bound the candidates'
+
+
+@dataclass
+class Proposal:
+    base_T_ee: gtsam.Pose3
+    kind: str  # "toward", "away" (fixed orientation, along the line to the scene), "rotate", "look-at", "recorded"
+    objective_after: float  # the stop rule's quantity after it (largest total sigma / target, combined)
+    gain: float  # expected reduction of that objective
+    sigma_after: dict  # camera -> sigma_ee_frame (total)
+    visible_points: int
+    frame: str | None = None  # a recorded frame (guided replay)
+
+
+def scene_geometry(sol) -> tuple[np.ndarray, np.ndarray]:
+    """(centroid in the base frame (median of the solved scene points), the reference camera's
+    distances to it (m) over its views)."""
+    ref = list(sol.ee_T_cam)[0]
+    pts, centres = [], []
+    for v, T in sol.base_T_cam.items():
+        if split_view_id(v)[0] != ref:
+            continue
+        P = _scene_points(sol, v)
+        if len(P):
+            pts.append(P @ T.rotation().matrix().T + T.translation())
+        centres.append(T.translation())
+    centroid = np.median(np.concatenate(pts), axis=0)
+    return centroid, np.linalg.norm(np.array(centres) - centroid, axis=1)
+
+
+def objective(covs: dict, ee_T_cam: dict, scale_rel: dict, distance_m: float, target_mm: float,
+              target_deg: float) -> float:
+    """sum over cameras of |sigma / target| over the six ee axes and the metric scale (as the mm it
+    moves a point at the median scene distance): 1 or less on every axis is the stop rule's "done"."""
+    from calib3r_graph.io.results import covariance_in_ee_frame
+
+    out = 0.0
+    for c, C in covs.items():
+        s = np.sqrt(np.maximum(np.diag(covariance_in_ee_frame(ee_T_cam[c], C)), 0))
+        z = np.r_[np.degrees(s[:3]) / target_deg, s[3:] * 1e3 / target_mm, scale_rel[c] * distance_m * 1e3 / target_mm]
+        out += float(np.sqrt(np.sum(z * z)))
+    return out
+
+
+def _look_from(T: gtsam.Pose3, centroid, axis, angle) -> gtsam.Pose3:
+    """Camera pose T rotated by ``angle`` about ``axis`` (base frame) through ``centroid``."""
+    R = gtsam.Rot3.AxisAngle(gtsam.Unit3(np.asarray(axis, float)).point3(), angle)
+    t = R.matrix() @ (T.translation() - centroid) + centroid
+    return gtsam.Pose3(R.compose(T.rotation()), t)
+
+
+def candidate_poses(sol, base_T_ee: dict, margin_m=0.05, box=None, rng=None, n_random=16) -> list:
+    """[(kind, base_T_ee)] inside the visited region (flange positions grown by ``margin_m``, or
+    ``box`` = (lo, hi) in the base frame, m; orientations within the visited ones + 15 degrees),
+    the camera looking at the scene's centroid from the distances seen so far."""
+    rng = rng or np.random.default_rng(0)
+    ref = list(sol.ee_T_cam)[0]
+    X = sol.ee_T_cam[ref]
+    centroid, dist = scene_geometry(sol)
+    d_lo, d_hi = float(dist.min()), float(dist.max())
+    frames = sorted(base_T_ee)
+    p = np.array([base_T_ee[f].translation() for f in frames])
+    lo, hi = (p.min(0) - margin_m, p.max(0) + margin_m) if box is None else (np.asarray(box[0]), np.asarray(box[1]))
+    from calib3r_graph.solver.systematic import configuration
+
+    _, w = configuration([base_T_ee[f] for f in frames])
+    R_mean = base_T_ee[frames[0]].rotation().compose(
+        gtsam.Rot3.Expmap(np.mean([gtsam.Rot3.Logmap(base_T_ee[frames[0]].rotation().between(base_T_ee[f].rotation()))
+                                   for f in frames], axis=0)))
+    max_angle = np.linalg.norm(w, axis=1).max() + np.radians(ORIENTATION_MARGIN_DEG)
+    views = [v for v in sol.base_T_cam if split_view_id(v)[0] == ref]
+    out = []
+    # weakest directions of the current total covariance, in the ee frame
+    from calib3r_graph.io.results import covariance_in_ee_frame
+
+    C = covariance_in_ee_frame(X, np.asarray(sol.covariance[ref]))
+    rot_weak = np.linalg.eigh(C[:3, :3])[1][:, -1]
+    t_weak = np.linalg.eigh(C[3:, 3:])[1][:, -1]
+    perp = np.linalg.svd(t_weak[None])[2][1:]  # two axes perpendicular to the weak translation
+    for v in views:
+        T = sol.base_T_cam[v]
+        c = T.translation()
+        d = np.linalg.norm(c - centroid)
+        for kind, target in (("toward", d_lo), ("away", d_hi)):
+            if abs(target - d) > MIN_DISTANCE_CHANGE * d:
+                out.append((kind, gtsam.Pose3(T.rotation(), centroid + (c - centroid) * target / d)))
+        R_ee = T.compose(X.inverse()).rotation().matrix()
+        for axis in [rot_weak, *perp]:
+            for deg in ROTATION_STEPS_DEG:
+                for sign in (1, -1):
+                    out.append(("rotate", _look_from(T, centroid, R_ee @ axis, sign * np.radians(deg))))
+    for _ in range(n_random):
+        T = sol.base_T_cam[views[rng.integers(len(views))]]
+        T = _look_from(T, centroid, rng.normal(size=3), np.radians(rng.uniform(10, 35)))
+        r = rng.uniform(d_lo, d_hi)
+        out.append(("look-at", gtsam.Pose3(T.rotation(), centroid + (T.translation() - centroid) * r
+                                           / np.linalg.norm(T.translation() - centroid))))
+    keep = []
+    for kind, C_cam in out:
+        E = C_cam.compose(X.inverse())
+        inside = np.all(E.translation() >= lo) and np.all(E.translation() <= hi)
+        if inside and np.linalg.norm(gtsam.Rot3.Logmap(R_mean.between(E.rotation()))) <= max_angle:
+            keep.append((kind, E))
+    return keep
+
+
+def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, target_mm: float, target_deg: float,
+                     information=None, seed=0) -> list:
+    """[Proposal] for candidates [(kind, base_T_ee, frame or None)], best first: the expected
+    objective (:func:`objective`) of the TOTAL covariance after each.
+
+    * Noise model: the candidate's factors (:func:`candidate_factors`) added to the information
+      matrix ``H`` of the current graph: their new variables eliminated (Schur complement), the
+      rank-13 update ``D`` on (ee_T_cam, the overlapping view's pose and scale) gives the marginals
+      by Woodbury, ``S' = S - S_:U D (I + S_UU D)^-1 S_U:``, with ``S = H^-1`` (no re-solve).
+    * Systematic part: it scales with the squared systematic-error gain of the motion
+      (``uncertainty.systematic_error_gain``: mm of ee_T_cam per mm of systematic error, from the
+      rotational diversity), so the candidate's effect on the gain rescales it.
+    * The few-pose cover (jackknife): a leave-one-out spread shrinks as 1/n with one more pose.
+    ``information``: (H, offsets) of ``sol.graph`` at ``sol.values`` (computed when None).
+    """
+    from calib3r_graph.solver.jackknife import cover, linear_system
+    from calib3r_graph.solver.uncertainty import systematic_error_gain
+
+    keys, cameras = sol.keys, list(sol.ee_T_cam)
+    if information is None:
+        H, offsets, _ = linear_system(sol.graph, sol.values)
+        information = (np.linalg.inv(H), offsets)
+    S, offsets = information
+    out_keys = [k for c in cameras for k in (keys.hand_eye(c), keys.metric(c))]
+    out_idx = np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in out_keys])
+    _, dist = scene_geometry(sol)
+    d_med = float(np.median(dist))
+    frames = sorted(base_T_ee)
+    gain_before = systematic_error_gain(base_T_ee, frames)[0]
+    n = len(frames)
+    jk = sol.stats.get("jackknife", {})
+    rng = np.random.default_rng(seed)
+    k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
+    proposals = []
+    for kind, E, frame in candidates:
+        fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new)
+        S_out = S[np.ix_(out_idx, out_idx)]
+        if best is not None:
+            g = gtsam.NonlinearFactorGraph()
+            for f in fs:
+                g.add(f)
+            gkeys = sorted(g.keyVector())  # a list: iterating gtsam's KeySet temporary is not safe
+            for k in gkeys:
+                if not vals.exists(k):
+                    _insert_like(vals, sol.values, k)
+            lin = g.linearize(vals)
+            old = [k for k in gkeys if k in offsets]
+            new = [k for k in gkeys if k not in offsets]
+            dims = {k: (offsets[k][1] if k in offsets else (6 if k == k_new[0] else 1)) for k in gkeys}
+            order = old + new
+            pos, col = {}, 0
+            for k in order:
+                pos[k] = (col, dims[k])
+                col += dims[k]
+            M = np.zeros((col, col))
+            for i in range(lin.size()):
+                f = lin.at(i)
+                idx = np.concatenate([np.arange(pos[k][0], pos[k][0] + pos[k][1]) for k in f.keys()])
+                M[np.ix_(idx, idx)] += f.augmentedInformation()[:len(idx), :len(idx)]
+            m = sum(dims[k] for k in old)
+            A, B, Cn = M[:m, :m], M[:m, m:], M[m:, m:]
+            D = A - B @ np.linalg.solve(Cn + 1e-12 * np.eye(len(Cn)), B.T)
+            U = np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in old])
+            S_uu, S_ou = S[np.ix_(U, U)], S[np.ix_(out_idx, U)]
+            S_out = S_out - S_ou @ D @ np.linalg.solve(np.eye(len(U)) + S_uu @ D, S_ou.T)
+        gain_after = systematic_error_gain({**base_T_ee, "_candidate": E}, frames + ["_candidate"])[0]
+        factor = (gain_after / gain_before) ** 2 if np.isfinite(gain_before) and gain_before > 0 else 1.0
+        covs, scale_rel, sig = {}, {}, {}
+        col = 0
+        for c in cameras:
+            model = S_out[col:col + 6, col:col + 6]
+            var_l = S_out[col + 6, col + 6]
+            col += 7
+            total = model + sol.systematic[c].covariance * factor if c in sol.systematic else model
+            if c in jk:
+                total = cover(total, np.asarray(jk[c]["covariance"]) * n / (n + 1))
+            covs[c] = total
+            lam = sol.metric_scale[c][0]
+            sys_rel = sol.systematic[c].scale_sigma_rel * np.sqrt(factor) if c in sol.systematic else 0.0
+            scale_rel[c] = float(np.hypot(np.sqrt(max(var_l, 0)) / abs(lam), sys_rel))
+            from calib3r_graph.io.results import covariance_in_ee_frame, sigma_ee_frame
+
+            sig[c] = sigma_ee_frame(np.sqrt(np.maximum(np.diag(covariance_in_ee_frame(sol.ee_T_cam[c], total)), 0)))
+        J = objective(covs, sol.ee_T_cam, scale_rel, d_med, target_mm, target_deg)
+        proposals.append(Proposal(E, kind, J, 0.0, sig, n_vis, frame))
+    J_now = objective(sol.covariance, sol.ee_T_cam, {c: sol.metric_scale[c][1] / abs(sol.metric_scale[c][0])
+                                                     for c in cameras}, d_med, target_mm, target_deg)
+    for p in proposals:
+        p.gain = J_now - p.objective_after
+    return sorted(proposals, key=lambda p: p.objective_after)
+
+
+def _insert_like(dst, src, k):
+    for get in (src.atPose3, src.atDouble, src.atVector):
+        try:
+            dst.insert(k, get(k))
+            return
+        except RuntimeError:
+            continue
+    raise KeyError(k)

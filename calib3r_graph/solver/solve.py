@@ -6,6 +6,7 @@ Huber weight and a hard cut for gross outliers, so outlier matches do not bend t
 result) -> marginal covariances -> outputs.
 """
 
+import contextlib
 import dataclasses
 import logging
 import sys
@@ -21,6 +22,7 @@ from calib3r_graph.io.predictions import Predictions, split_view_id
 from calib3r_graph.solver.graph import (Keys, NoiseOptions, add_depth_correction_priors, add_robot_factors,
                                  add_scale_gauge_factors, add_scene_factors, depth_correction, initial_values,
                                  match_residuals, point_sqrt_info, robot_chi2, robot_views)
+from calib3r_graph.solver.camera_model import add_camera_model
 from calib3r_graph.solver.init import initialise
 from calib3r_graph.solver.jackknife import cover, jackknife, wanted
 from calib3r_graph.solver.observations import build_observations
@@ -72,6 +74,7 @@ class Solution:
     scene_weight_scale: float = 1.0
     covariance_model: dict = field(default_factory=dict)  # camera -> 6x6 marginal of the noise model alone
     systematic: dict = field(default_factory=dict)  # camera -> systematic.SystematicError
+    camera_model: dict = field(default_factory=dict)  # camera -> camera_model.CameraModelError
 
 
 def _lm(graph, values, max_iterations, label, progress=True):
@@ -165,6 +168,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                                 opt.noise, np.ones(len(o))) for o in observations]
 
     n_rounds = opt.irls_rounds + 1 + int(opt.noise_calibration)
+    weak = []  # views whose scene factors the rounds leave too weak to determine them
     sigma0_sq, kappa, robot_factor, robot_fit = 1.0, 1.0, 1.0, None
     noise = opt.noise
     for rnd in range(n_rounds):
@@ -193,8 +197,16 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
             noise = dataclasses.replace(opt.noise, robot_sigma_mm=opt.noise.robot_sigma_mm * np.sqrt(robot_factor),
                                         robot_sigma_deg=opt.noise.robot_sigma_deg * np.sqrt(robot_factor))
             label += " (noise-calibrated)"
+        for v, reason in unsupported_views(views, observations, weights).items():
+            log.warning("%s: %s; solved without it", view_words(v), reason)
+            weak.append({"view": v, "reason": reason})
+        if weak and {d["view"] for d in weak} & set(views):
+            gone = {d["view"] for d in weak}
+            views, cameras, observations, conf, weights, inliers = _without_views(
+                gone, keys, values, views, cameras, observations, conf, weights, inliers)
         graph = build_graph(weights, noise)
-        values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label, opt.progress)
+        with gtsam_keys_named(keys):
+            values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label, opt.progress)
         history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
         if rnd < opt.irls_rounds:
@@ -210,13 +222,14 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
     except RuntimeError as e:
         from calib3r_graph.errors import library_error
 
-        cause = (library_error(e) or (next(iter(str(e).strip().splitlines()), ""), 0))[0]
+        cause = (library_error(e, keys.describe) or (next(iter(str(e).strip().splitlines()), ""), 0))[0]
         raise SolveError(f"the calibration is not observable from this data ({cause})"
                          + _unobservable_because(ds, preds, views)) from None
     # The systematic part: a kinematic error field measured from the robot residuals (systematic.py).
     robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), ds.base_T_ee[split_view_id(v)[1]])
              for v in robot_views(keys, views)]
-    systematic = systematic_errors(graph, values, robot, {c: (keys.hand_eye(c), keys.metric(c)) for c in cameras})
+    with gtsam_keys_named(keys):
+        systematic = systematic_errors(graph, values, robot, {c: (keys.hand_eye(c), keys.metric(c)) for c in cameras})
     covariance = {c: covariance_model[c] + systematic[c].covariance for c in cameras}
     metric = {}
     for c in cameras:
@@ -225,7 +238,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
         metric[c] = (lam, float(np.hypot(sigma_model, lam * systematic[c].scale_sigma_rel)))
     timings["covariance"] = time.perf_counter() - t
     used_frames = {split_view_id(v)[1] for v in views}
-    diagnostics = motion_diagnostics(ds.base_T_ee, used_frames)
+    diagnostics = motion_diagnostics(ds.base_T_ee, used_frames) + pose_disagreements_kept(preds)
     gain, gain_axis = systematic_error_gain(ds.base_T_ee, used_frames)
     residuals = np.concatenate([np.linalg.norm(e, axis=1) for e in match_residuals(observations, values, keys)])
     stats_out = {"rounds": history, "timings_s": timings,
@@ -248,17 +261,20 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
         base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
         depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
         depth_correction={v: depth_correction(values, keys, v) for v in views},
-        init_ee_T_cam=init.ee_T_cam, stats=stats_out, views_dropped=init.dropped_views, diagnostics=diagnostics,
+        init_ee_T_cam=init.ee_T_cam, stats=stats_out,
+        views_dropped=dropped_by_frontend(preds) + init.dropped_views + weak, diagnostics=diagnostics,
         graph=graph, values=values, keys=keys, observations=observations,
         scene_weight_scale=1.0 / (sigma0_sq * kappa))
     if wanted(opt.jackknife, len(used_frames)):
         t = time.perf_counter()
-        _cover_with_jackknife(ds, preds, opt, sol)
+        with gtsam_keys_named(keys):
+            _cover_with_jackknife(ds, preds, opt, sol)
         timings["jackknife"] = time.perf_counter() - t
     for c in cameras:
         diagnostics += covariance_diagnostics(c, sol.ee_T_cam[c], sol.covariance[c])
     for msg in diagnostics:
         log.warning("%s", msg)
+    add_camera_model(sol, ds, weights, Ks, noise)  # the intrinsics' own sigma, after the motion's diagnostics
     return sol
 
 
@@ -281,13 +297,161 @@ def _cover_with_jackknife(ds, preds, opt, sol):
     jk, suspect = jackknife(ds, preds, opt, sol, solve, progress=opt.progress)
     sol.stats["influential_pose"] = suspect
     if suspect:
-        sol.diagnostics.append(
-            f"robot pose {suspect['frame']}: without it the robot and the images agree {suspect['chi2_ratio']:.0f}x "
-            f"better (robot chi2 per dof {suspect['chi2_per_dof']:.3g} -> {suspect['chi2_per_dof_without']:.3g}, "
-            f"F = {suspect['F']:.3g}, p = {suspect['p']:.2g}): check its image and its pose (a wrong pair "
-            "geometry or a wrong robot pose)")
+        sol.diagnostics.append(influential_pose_message(suspect))
     for c, rep in jk.items():
         before = np.asarray(sol.covariance[c])
         sol.covariance[c] = cover(before, np.asarray(rep["covariance"]))
         rep["covariance_before"] = before.tolist()
     sol.stats["jackknife"] = jk
+
+
+def influential_pose_message(suspect: dict) -> str:
+    """The diagnostic for jackknife.influential_pose's result, with the measured chi2 ratio (to two
+    decimals: 1.59 is not "2x")."""
+    return (f"robot pose {suspect['frame']}: without it the robot and the images agree {suspect['chi2_ratio']:.2f}x "
+            f"better (robot chi2 per dof {suspect['chi2_per_dof']:.3g} -> {suspect['chi2_per_dof_without']:.3g}, "
+            f"F = {suspect['F']:.3g}, p = {suspect['p']:.2g}): check its image and its pose (a wrong pair "
+            "geometry or a wrong robot pose)")
+
+
+@contextlib.contextmanager
+def gtsam_keys_named(keys):
+    """GTSAM's indeterminate-system error inside becomes a SolveError that names the view (camera,
+    frame) or the camera behind the key, never the key itself (s6, x18)."""
+    from calib3r_graph.errors import library_error
+
+    try:
+        yield
+    except RuntimeError as e:
+        described = library_error(e, keys.describe)
+        if described is None or described[1] != SolveError.exit_code:
+            raise
+        raise SolveError(f"the calibration is not observable from this data ({described[0]})") from e
+
+
+def unsupported_views(views, observations, weights, min_matches=3) -> dict:
+    """{view: reason} for the views that the scene factors of this round cannot determine.
+
+    A pair enters the graph with at least ``min_matches`` matches of non-zero weight
+    (graph.add_scene_factors). A view's depth scale is fixed only through such pairs, and a group
+    of views linked by them is tied to the metric robot frame only when it spans two robot poses
+    (the gauge argument of graph.py). A view without such a pair, or in a group at one pose, would
+    leave the system indeterminate at the marginals (GTSAM names some variable of it, or the
+    camera's metric scale it shares), however well LM converged: one view's weak pairs must not
+    sink the solve of the others."""
+    parent = {v: v for v in views}
+
+    def root(v):
+        while parent[v] != v:
+            parent[v] = parent[parent[v]]
+            v = parent[v]
+        return v
+
+    pairs, matches, usable = {}, {}, {}
+    for o, w in zip(observations, weights):
+        for v in (o.view_a, o.view_b):
+            pairs[v] = pairs.get(v, 0) + 1
+            matches[v] = matches.get(v, 0) + len(o)
+        if int(np.count_nonzero(w > 0)) >= min_matches:
+            usable[o.view_a] = usable.get(o.view_a, 0) + 1
+            usable[o.view_b] = usable.get(o.view_b, 0) + 1
+            parent[root(o.view_a)] = root(o.view_b)
+    groups = {}
+    for v in views:
+        groups.setdefault(root(v), []).append(v)
+    out = {}
+    for members in groups.values():
+        frames = {split_view_id(v)[1] for v in members}
+        if len(frames) >= 2:
+            continue
+        for v in members:
+            if not usable.get(v):
+                out[v] = (f"none of its {pairs.get(v, 0)} pair(s) keeps {min_matches} of its {matches.get(v, 0)} "
+                          "matches after robust re-weighting (they disagree with its robot pose and the other "
+                          "views), so nothing determines its depth scale")
+            else:
+                out[v] = (f"its pairs link it only to {', '.join(sorted(set(members) - {v}))}, at the same robot "
+                          "pose, so nothing ties their depth scale to the robot's motion")
+    return out
+
+
+def view_words(v: str) -> str:
+    """'view cam0/0006 (camera cam0, frame 0006)': how messages name a view."""
+    cam, frame = split_view_id(v)
+    return f"view {v} (camera {cam}, frame {frame})"
+
+
+def _without_views(gone, keys, values, views, cameras, observations, conf, weights, inliers):
+    """The solve's state without the views in ``gone``: their variables leave ``values`` and their
+    pairs the lists; a camera left with no view leaves too."""
+    for v in gone & set(views):
+        for k in (keys.pose(v), keys.scale(v), keys.correction(v)):
+            if values.exists(k):
+                values.erase(k)
+    views = [v for v in views if v not in gone]
+    left = {split_view_id(v)[0] for v in views}
+    for c in cameras:
+        if c not in left:
+            for k in (keys.hand_eye(c), keys.metric(c)):
+                if values.exists(k):
+                    values.erase(k)
+    cameras = [c for c in cameras if c in left]
+    if not views:
+        raise SolveError("no view is left that the scene factors determine")
+    keep = [i for i, o in enumerate(observations) if o.view_a not in gone and o.view_b not in gone]
+    pick = lambda xs: [xs[i] for i in keep]
+    return views, cameras, pick(observations), pick(conf), pick(weights), pick(inliers)
+
+
+def _frontend_notes(preds) -> tuple[dict, dict]:
+    """info.json's {view: reason} ("unusable_reasons") and {view: entry} ("pose_disagreements",
+    OWNERS.md format); entries that do not fit that format are skipped (they are the frontend's
+    notes, not data the solve needs)."""
+    info = preds.info if isinstance(preds.info, dict) else {}
+    reasons = info.get("unusable_reasons")
+    reasons = {v: r for v, r in reasons.items() if isinstance(v, str) and isinstance(r, str)} \
+        if isinstance(reasons, dict) else {}
+    entries = info.get("pose_disagreements")
+    disagree = {}
+    for d in entries if isinstance(entries, list) else []:
+        if (isinstance(d, dict) and isinstance(d.get("view"), str) and "/" in d["view"]
+                and isinstance(d.get("rotation_deg"), (int, float))):
+            disagree[d["view"]] = d
+    return reasons, disagree
+
+
+def dropped_by_frontend(preds) -> list:
+    """[{"view", "reason"}] for the views the frontend could not use (predictions' info.json:
+    "unusable_views", with "unusable_reasons" and "pose_disagreements" where it gives them)."""
+    reasons, disagree = _frontend_notes(preds)
+    unusable = preds.info.get("unusable_views") if isinstance(preds.info, dict) else None
+    unusable = [v for v in unusable if isinstance(v, str)] if isinstance(unusable, list) else []
+    out, seen = [], set()
+    for v in unusable + list(reasons) + [v for v in disagree if v not in preds.views]:
+        if v in seen or v in preds.views:
+            continue
+        seen.add(v)
+        reason = pose_disagreement_text(disagree[v]) if v in disagree else \
+            reasons.get(v) or "the frontend found no usable two-view geometry for it"
+        out.append({"view": v, "reason": reason})
+    return out
+
+
+def pose_disagreements_kept(preds) -> list:
+    """The diagnostics for poses the frontend found disagreeing with their image but kept in the
+    predictions (the solve uses them: the user should still check them)."""
+    _, disagree = _frontend_notes(preds)
+    return [pose_disagreement_text(d) + "; kept in the solve: check this robot pose"
+            for v, d in disagree.items() if v in preds.views]
+
+
+def pose_disagreement_text(d: dict) -> str:
+    """'pose of frame 0007 disagrees with its image by 8.5° / 44 mm (...)' from one entry of info.json's
+    "pose_disagreements"."""
+    cam, frame = split_view_id(d["view"])
+    cam, frame = d.get("camera") or cam, d.get("frame") or frame
+    t = d.get("translation_mm")
+    size = f"{d['rotation_deg']:.1f}°" + (f" / {t:.0f} mm" if isinstance(t, (int, float)) else "")
+    pairs = (f": the frontend rejected {d.get('pairs_rejected', '?')} of its {d['pairs_total']} pairs by the "
+             "robot's motion" if isinstance(d.get("pairs_total"), int) else "")
+    return f"pose of frame {frame} disagrees with its image by {size} (camera {cam}{pairs})"

@@ -157,12 +157,21 @@ def _dim(values, key) -> int:
     raise ValueError(f"unsupported value type for key {key}")
 
 
-def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> dict:
-    """{key: covariance block} of the fields through the whole linearised graph.
+_LAST_SYSTEM = []  # [(graph, values, sizes, result)]: solve asks twice for one (here and camera_model.py)
 
-    ``robot``: (ee_T_cam key, base_T_cam key, measured base_T_ee) of every robot pose factor
-    ``e = Log((base_T_ee ee_T_cam)^-1 base_T_cam)`` in ``graph``; ``tau`` as measure_field gives it.
-    """
+
+def linear_system(graph, values) -> tuple[np.ndarray, dict, object]:
+    """(H, {key: (column, dim)}, the linearised graph) at ``values``: H = A^T A of the whole
+    graph (Gauss-Newton), dense, in sorted key order (every tangent in GTSAM's local coordinates).
+    The last one is kept: the same graph and values objects give it again without linearising."""
+    sizes = (graph.size(), values.size())
+    if _LAST_SYSTEM and _LAST_SYSTEM[0][0] is graph and _LAST_SYSTEM[0][1] is values and _LAST_SYSTEM[0][2] == sizes:
+        return _LAST_SYSTEM[0][3]
+    _LAST_SYSTEM[:] = [(graph, values, sizes, _linear_system(graph, values))]
+    return _LAST_SYSTEM[0][3]
+
+
+def _linear_system(graph, values):
     import gtsam
 
     ordering, offsets, col = gtsam.Ordering(), {}, 0
@@ -172,6 +181,16 @@ def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> di
         col += offsets[k][1]
     lin = graph.linearize(values)
     H, _ = lin.hessian(ordering)  # A^T A, without forming the (tall) dense A
+    return H, offsets, lin
+
+
+def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> dict:
+    """{key: covariance block} of the fields through the whole linearised graph.
+
+    ``robot``: (ee_T_cam key, base_T_cam key, measured base_T_ee) of every robot pose factor
+    ``e = Log((base_T_ee ee_T_cam)^-1 base_T_cam)`` in ``graph``; ``tau`` as measure_field gives it.
+    """
+    H, offsets, lin = linear_system(graph, values)
     index = {tuple(graph.at(i).keys()): i for i in range(graph.size())}
     C = [values.atPose3(c) for _, c, _ in robot]
     # One field for the arm, over every robot pose's flange configuration (any camera's ee_T_cam).

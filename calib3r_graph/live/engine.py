@@ -1,0 +1,418 @@
+"""The incremental engine: frames arrive one at a time, the calibration follows each.
+
+Each update takes the predictions of the frames so far (``sources.py``: a recording's, or the
+pairwise frontend run incrementally), places the new views, and re-solves the joint graph of
+``solver/graph.py`` by Levenberg-Marquardt **warm-started from the previous solution**: the old
+views start where they were, a new view starts from its best pairwise Sim(3) to a view already
+placed (the same RANSAC + Umeyama as ``solve``'s initialisation), so LM converges in a few
+iterations. Why not iSAM2 (measured in docs/live.md): every update also changes the weights of
+the *old* scene factors (robust re-weighting and the noise calibration rescale all of them) and
+the pairwise frontend re-aggregates old views' depths when a new pair arrives, so iSAM2 would
+have to remove and re-add most factors at every frame; what it saves, relinearising only what
+moved, is what a warm start saves too.
+
+Robust re-weighting and noise calibration run at every update, lagged by one: the update's LM
+uses the weights computed from the previous solution's residuals (new pairs: their RANSAC
+inliers, as ``solve``'s first round) and the previous update's variance factors; after the LM
+they are recomputed for the next update. The sequence of updates is thus the IRLS iteration
+itself, one round per frame, at the cost of residuals only. :meth:`Engine.finish` runs
+``solve``'s schedule (its initialisation, two re-weighting rounds, then the noise-calibrated round),
+so the final result is ``solve``'s on the same frames and predictions (see its docstring for why
+not warm).
+
+The covariance at every update comes from one linearisation (``jackknife.linear_system``): the
+noise model's marginal (the inverse of the information matrix), the systematic part
+(``systematic.py``) and, below ``JACKKNIFE_BELOW`` poses, the cover of the linearised
+leave-one-pose-out jackknife.
+"""
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from calib3r_graph.errors import SolveError
+from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.solver.graph import (Keys, add_depth_correction_priors, add_robot_factors, add_scale_gauge_factors,
+                                        add_scene_factors, depth_correction, match_residuals, point_sqrt_info,
+                                        robot_chi2, robot_views)
+from factors.match3d import DEPTH_CORRECTION_DIM
+from calib3r_graph.solver.init import initialise, pairwise_sim3
+from calib3r_graph.solver.jackknife import cover, linear_system, linearised_jackknife, wanted
+from calib3r_graph.solver.observations import build_observations
+from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions, _lm, robust_weights
+from calib3r_graph.solver.camera_model import add_camera_model
+from calib3r_graph.solver.systematic import systematic_errors
+from calib3r_graph.solver.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
+                                              systematic_error_gain)
+
+log = logging.getLogger(__name__)
+
+# A total sigma beyond these is no calibration yet (a flange camera's mount offset is about 0.1 m; a
+# 10 degree sigma is no rotation estimate): the update says "not observable yet" and the next starts
+# cold rather than warm from it.
+MAX_SIGMA_MM, MAX_SIGMA_DEG = 100.0, 10.0
+
+
+@dataclass
+class Calibration:
+    """The noise calibration carried from update to update (uncertainty.noise_calibration)."""
+    sigma0_sq: float = 1.0
+    kappa: float = 1.0
+    robot_factor: float = 1.0
+    robot_fit: tuple | None = None
+
+
+@dataclass
+class State:
+    base_T_cam: dict = field(default_factory=dict)  # view -> Pose3
+    depth_scale: dict = field(default_factory=dict)  # view -> float
+    correction: dict = field(default_factory=dict)  # view -> (K,)
+    ee_T_cam: dict = field(default_factory=dict)  # camera -> Pose3
+    weights: dict = field(default_factory=dict)  # (view_a, view_b) -> (N,) robust weights (conf x Huber)
+    calibration: Calibration = field(default_factory=Calibration)
+
+
+class Engine:
+    """Incremental solver over a growing set of frames. ``opt``: ``solve``'s options."""
+
+    def __init__(self, ds, opt: SolveOptions):
+        self.ds = ds
+        self.opt = dataclasses.replace(opt, progress=False)
+        self.state: State | None = None
+        self.depth_ref = {}  # view -> valid pixels of the depth map the state's depth scale refers to
+        self._depth_of = {}  # view -> that depth map (unchanged maps are not compared again)
+        self.last_noise, self.last_information = opt.noise, None
+
+    # ------------------------------------------------------------------ one update
+    def update(self, base_T_ee: dict, preds, final=False) -> Solution:
+        """Solve with the frames of ``base_T_ee`` and their predictions, warm from the last update.
+        A SolveError (not observable yet) leaves no state behind: the next update starts cold."""
+        try:
+            sol = self._update(base_T_ee, preds, final)
+        except SolveError:
+            self.state = None
+            raise
+        for c, X in sol.ee_T_cam.items():
+            C = sol.covariance[c]
+            sig_mm = np.sqrt(np.linalg.eigvalsh(C[3:, 3:])[-1]) * 1e3
+            sig_deg = np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3])[-1]))
+            if not (sig_mm < MAX_SIGMA_MM and sig_deg < MAX_SIGMA_DEG):
+                self.state = None
+                raise SolveError(f"{c}: not observable from these frames yet (sigma {sig_mm:.3g} mm, {sig_deg:.3g} deg)")
+        return sol
+
+    def _update(self, base_T_ee: dict, preds, final=False) -> Solution:
+        frames = {split_view_id(v)[1] for v in preds.views} & set(base_T_ee)
+        if len(frames) < MIN_ROBOT_POSES:
+            raise SolveError(f"only {len(frames)} robot pose(s) with predictions so far; the calibration needs "
+                             f"{MIN_ROBOT_POSES}")
+        timings = {}
+        t = time.perf_counter()
+        observations = build_observations(preds, self.opt.max_matches_per_pair, seed=self.opt.seed)
+        if not observations:
+            raise SolveError("no view pair has enough valid matches yet")
+        timings["observations"] = time.perf_counter() - t
+        t = time.perf_counter()
+        cold = self.state is None or not set(self.state.ee_T_cam) >= {split_view_id(v)[0] for v in preds.views}
+        if cold:
+            _require_two_axes(base_T_ee, frames)
+            state, inliers = self._cold(base_T_ee, preds, observations)
+        else:
+            state, inliers = self._warm(base_T_ee, preds, observations)
+        timings["placement"] = time.perf_counter() - t
+        views = sorted(state.base_T_cam)
+        keep = [i for i, o in enumerate(observations) if o.view_a in state.base_T_cam and o.view_b in state.base_T_cam]
+        observations = [observations[i] for i in keep]
+        inliers = [inliers[i] for i in keep]
+        cameras = [c for c in self.ds.cameras if any(split_view_id(v)[0] == c for v in views)]
+        keys = Keys(views, cameras)
+        Ks = {v: preds.views[v].K for v in views}
+        ctx = _Context(self.ds, base_T_ee, preds, observations, keys, Ks, views, cameras,
+                       self.opt)
+        values = ctx.values(state)
+        conf = [o.weight for o in observations]
+        t = time.perf_counter()
+        history = []
+        if cold or final:
+            # solve's schedule: first round on the RANSAC inliers (cold) or the IRLS weights at the warm
+            # start, irls_rounds re-weighted rounds, then the noise-calibrated round.
+            weights = ([o.weight * m for o, m in zip(observations, inliers)] if cold
+                       else ctx.warm_weights(values, conf, inliers))
+            calib = Calibration()
+            for rnd in range(self.opt.irls_rounds + 1):
+                values = ctx.lm(values, weights, calib, history)
+                weights = robust_weights(observations, match_residuals(observations, values, keys),
+                                         ctx.nominal_whitening(values), conf)
+            calib = ctx.calibrate(values, weights) if self.opt.noise_calibration else Calibration()
+            values = ctx.lm(values, weights, calib, history)
+        else:
+            weights = ctx.warm_weights(values, conf, inliers)
+            calib = state.calibration
+            values = ctx.lm(values, weights, calib, history)
+        timings["optimisation"] = time.perf_counter() - t
+        t = time.perf_counter()
+        graph = ctx.graph(values, weights, calib)
+        ctx.weights = weights
+        sol = ctx.solution(graph, values, calib, history, timings)
+        self.last_noise, self.last_information = ctx.noise(calib), ctx.information  # for the guidance
+        timings["covariance"] = time.perf_counter() - t
+        # carried to the next update: the noise calibration at this solution, with the robust weights
+        # the next update's IRLS starts from (its own residuals at the warm start)
+        new_weights = robust_weights(observations, match_residuals(observations, values, keys),
+                                     ctx.nominal_whitening(values), conf)
+        next_calib = ctx.calibrate(values, new_weights) if self.opt.noise_calibration else Calibration()
+        self.state = State({v: sol.base_T_cam[v] for v in views}, dict(sol.depth_scale), dict(sol.depth_correction),
+                           dict(sol.ee_T_cam), {}, next_calib)
+        self.depth_ref = {v: self.depth_ref[v] if self.depth_ref.get(v, (None, None, None))[2] is not None
+                          and preds.views[v].depth is self._depth_of.get(v) else _valid_depth(preds.views[v].depth)
+                          for v in views}
+        self._depth_of = {v: preds.views[v].depth for v in views}
+        return sol
+
+    def finish(self, base_T_ee: dict, preds) -> Solution:
+        """The last update is ``solve`` itself on the same frames and predictions, so the result is
+        ``solve``'s. Warm-starting it is not enough on real data: ``solve``'s two IRLS rounds do not
+        reach a fixed point there (rwhe_kuka_1: each extra round moves ee x by about 0.5 sigma, 1.0
+        sigma after six), so a warm path lands elsewhere on that path (0.48 sigma measured)."""
+        from calib3r_graph.solver.solve import solve
+
+        sol = solve(dataclasses.replace(self.ds, base_T_ee=dict(base_T_ee)), preds, self.opt)
+        views = sorted(sol.base_T_cam)
+        self.state = State({v: sol.base_T_cam[v] for v in views}, dict(sol.depth_scale), dict(sol.depth_correction),
+                           dict(sol.ee_T_cam), {}, Calibration(*_calibration_of(sol)))
+        self.depth_ref = {v: _valid_depth(preds.views[v].depth) for v in views}
+        self._depth_of = {v: preds.views[v].depth for v in views}
+        used = sol.stats.get("noise_calibration", {}).get("robot_sigma_used")
+        self.last_noise = (dataclasses.replace(self.opt.noise, robot_sigma_mm=float(used[0]),
+                                               robot_sigma_deg=float(used[1])) if used else self.opt.noise)
+        self.last_information = None
+        return sol
+
+    # ------------------------------------------------------------------ placement
+    def _cold(self, base_T_ee, preds, observations):
+        init = initialise(sorted(preds.views), observations, base_T_ee, "robot poses")
+        state = State(dict(init.base_T_cam), dict(init.depth_scale), {}, dict(init.ee_T_cam))
+        return state, [m if m is not None else np.zeros(len(o), bool) for o, m in zip(observations, init.inliers)]
+
+    def _warm(self, base_T_ee, preds, observations):
+        """The previous state, with re-aggregated views' depth scales carried over and each new view
+        chained to a placed one by their pairwise Sim(3) (P_a ~ s R P_b + t, view a's units)."""
+        old = self.state
+        state = State(ee_T_cam=dict(old.ee_T_cam), weights=old.weights, calibration=old.calibration)
+        for v, T in old.base_T_cam.items():
+            if v not in preds.views:
+                continue
+            state.base_T_cam[v] = T
+            state.depth_scale[v] = old.depth_scale[v] * _unit_change(self.depth_ref.get(v), preds.views[v].depth)
+            state.correction[v] = old.correction.get(v)
+        inliers = [None] * len(observations)
+        # RANSAC only for the pairs with a view not placed yet; the others get IRLS weights from their
+        # residuals at the warm start (_Context.carried_weight)
+        new = [i for i, o in enumerate(observations)
+               if o.view_a not in state.base_T_cam or o.view_b not in state.base_T_cam]
+        for i, sim in zip(new, pairwise_sim3([observations[i] for i in new])):
+            inliers[i] = sim
+        while True:  # place the unplaced view with the strongest pair to a placed one, until none is left
+            best = None
+            for i in new:
+                o, sim = observations[i], inliers[i]
+                if sim is None or (o.view_a in state.base_T_cam) == (o.view_b in state.base_T_cam):
+                    continue
+                if best is None or sim[3].sum() > inliers[best][3].sum():
+                    best = i
+            if best is None:
+                break
+            o, (s, R, t, _) = observations[best], inliers[best]
+            if o.view_a in state.base_T_cam:  # b from a: base_T_b = base_T_a (R, s_a t), s_b = s_a s
+                s_a = state.depth_scale[o.view_a]
+                state.base_T_cam[o.view_b] = state.base_T_cam[o.view_a].compose(gtsam.Pose3(gtsam.Rot3(R), s_a * t))
+                state.depth_scale[o.view_b] = s_a * s
+            else:  # a from b: b_T_a = (R^T, -R^T t s_b / s ... ) in metres
+                s_b = state.depth_scale[o.view_b]
+                s_a = s_b / s
+                a_T_b = gtsam.Pose3(gtsam.Rot3(R), s_a * t)
+                state.base_T_cam[o.view_a] = state.base_T_cam[o.view_b].compose(a_T_b.inverse())
+                state.depth_scale[o.view_a] = s_a
+        masks = []
+        for o, sim in zip(observations, inliers):
+            masks.append(sim[3] if isinstance(sim, tuple) else None)  # None: both views were placed
+        return state, masks
+
+
+def _calibration_of(sol) -> tuple:
+    nc = sol.stats.get("noise_calibration", {})
+    return (nc.get("variance_factor", 1.0), nc.get("design_effect", 1.0), nc.get("robot_variance_factor", 1.0),
+            nc.get("robot_chi2_dof"))
+
+
+def _require_two_axes(base_T_ee, frames):
+    """Before a cold start: the flange must have rotated about two different axes (the rule of
+    uncertainty.motion_diagnostics: the second singular value of the angle-weighted rotation axes at
+    least 0.15 of the first), else LM only wanders in the unobservable directions."""
+    from calib3r_graph.solver.uncertainty import relative_rotations
+
+    w = relative_rotations(base_T_ee, sorted(frames))
+    w = w[np.linalg.norm(w, axis=1) > np.radians(2)]
+    if len(w) < 2:
+        raise SolveError(f"the flange has not rotated yet ({len(frames)} poses): add poses rotated 30-90 degrees "
+                         "about different axes")
+    s = np.linalg.svd(w, compute_uv=False)
+    if s[1] < 0.15 * s[0]:
+        raise SolveError(f"the {len(frames)} poses so far rotate about one axis only: add poses that rotate about "
+                         "a perpendicular axis")
+
+
+def _unit_change(before, after) -> float:
+    """How much a re-aggregated view's depth unit grew: median of after / before where both have depth
+    (the pairwise frontend's unit is its reference pair's baseline, which a new pair may replace).
+    ``before``: (flat indices, depths) of the previous depth map's valid pixels (sparse for that frontend)."""
+    if before is None or before[2] != after.shape:
+        return 1.0
+    idx, d = before[0], before[1]
+    a = after.ravel()[idx]
+    ok = a > 0
+    if ok.sum() < 10:
+        return 1.0
+    return float(1.0 / np.median(a[ok] / d[ok]))
+
+
+def _valid_depth(depth):
+    idx = np.flatnonzero(depth > 0)
+    return idx, depth.ravel()[idx], depth.shape
+
+
+class _Context:
+    """What one update's graph is built from, and the steps of ``solve`` on it."""
+
+    def __init__(self, ds, base_T_ee, preds, observations, keys, Ks, views, cameras, opt):
+        self.ds, self.base_T_ee, self.preds, self.observations = ds, base_T_ee, preds, observations
+        self.keys, self.Ks, self.views, self.cameras, self.opt = keys, Ks, views, cameras, opt
+
+    def values(self, state) -> gtsam.Values:
+        keys, values = self.keys, gtsam.Values()
+        with_corr = self.opt.noise.depth_correction_sigma > 0
+        for v in self.views:
+            values.insert(keys.pose(v), state.base_T_cam[v])
+            values.insert(keys.scale(v), float(state.depth_scale[v]))
+            if with_corr:
+                c = state.correction.get(v)
+                values.insert(keys.correction(v), np.zeros(DEPTH_CORRECTION_DIM) if c is None else np.asarray(c))
+        for cam in self.cameras:
+            values.insert(keys.hand_eye(cam), state.ee_T_cam[cam])
+            scales = [state.depth_scale[v] for v in self.views if split_view_id(v)[0] == cam]
+            values.insert(keys.metric(cam), float(np.exp(np.mean(np.log(scales)))))
+        return values
+
+    def warm_weights(self, values, conf, inliers):
+        """IRLS weights (solve.robust_weights) from the residuals at the warm start for the pairs of
+        views placed before; confidence x RANSAC inliers for the pairs of a view placed now."""
+        old = [i for i, m in enumerate(inliers) if m is None]
+        out = [None if m is None else c * m for c, m in zip(conf, inliers)]
+        if old:
+            obs = [self.observations[i] for i in old]
+            res = match_residuals(obs, values, self.keys)
+            W = self.nominal_whitening(values, obs)
+            for i, w in zip(old, robust_weights(obs, res, W, [conf[i] for i in old])):
+                out[i] = w
+        return out
+
+    def noise(self, calib):
+        f = np.sqrt(calib.robot_factor)
+        return dataclasses.replace(self.opt.noise, robot_sigma_mm=self.opt.noise.robot_sigma_mm * f,
+                                   robot_sigma_deg=self.opt.noise.robot_sigma_deg * f)
+
+    def graph(self, values, weights, calib):
+        keys, noise = self.keys, self.noise(calib)
+        scale = 1.0 / (calib.sigma0_sq * calib.kappa)
+        graph = gtsam.NonlinearFactorGraph()
+        add_scene_factors(graph, keys, self.observations, [w * scale for w in weights], values, self.Ks, noise,
+                          self.opt.reprojection)
+        add_robot_factors(graph, keys, self.views, self.base_T_ee,
+                          {c: values.atPose3(keys.hand_eye(c)) for c in self.cameras}, noise)
+        add_scale_gauge_factors(graph, keys, self.views, noise)
+        add_depth_correction_priors(graph, keys, self.views, noise)
+        return graph
+
+    def lm(self, values, weights, calib, history):
+        graph = self.graph(values, weights, calib)
+        values, iters, e0, e1 = _lm(graph, values, self.opt.max_iterations, "live", False)
+        history.append({"round": len(history) + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
+                        "matches_used": int(sum((w > 0).sum() for w in weights))})
+        return values
+
+    def nominal_whitening(self, values, observations=None):
+        keys = self.keys
+        return [point_sqrt_info(o, self.Ks[o.view_a], self.Ks[o.view_b],
+                                values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))),
+                                values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)),
+                                self.opt.noise, np.ones(len(o))) for o in (observations or self.observations)]
+
+    def calibrate(self, values, weights) -> Calibration:
+        """solve's noise calibration at ``values`` with the robust ``weights``."""
+        residuals = match_residuals(self.observations, values, self.keys)
+        grid = {v: self.preds.views[v].depth.shape[::-1] for v in self.views}
+        sigma0_sq, kappa = noise_calibration(self.observations, residuals, self.nominal_whitening(values), weights,
+                                             grid)
+        chi2, n_frames = robot_chi2(self.keys, self.views, self.base_T_ee, values, self.opt.noise)
+        robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
+        if not np.isfinite(robot_factor):
+            robot_factor = 1.0
+        return Calibration(sigma0_sq, kappa, robot_factor, (float(chi2), 6 * n_frames - 13))
+
+    def solution(self, graph, values, calib, history, timings) -> Solution:
+        keys, cameras, views = self.keys, self.cameras, self.views
+        H, offsets, _ = linear_system(graph, values)
+        try:
+            Hinv = np.linalg.inv(H)
+        except np.linalg.LinAlgError:
+            raise SolveError("the calibration is not observable from these frames yet") from None
+        self.information = (Hinv, offsets)
+        block = lambda k: Hinv[offsets[k][0]:offsets[k][0] + offsets[k][1], offsets[k][0]:offsets[k][0] + offsets[k][1]]
+        covariance_model = {c: block(keys.hand_eye(c)) for c in cameras}
+        if not all(np.all(np.isfinite(C)) and np.linalg.eigvalsh(0.5 * (C + C.T))[0] > 0
+                   for C in covariance_model.values()):
+            raise SolveError("the calibration is not observable from these frames yet (singular information)")
+        robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), self.base_T_ee[split_view_id(v)[1]])
+                 for v in robot_views(keys, views)]
+        systematic = systematic_errors(graph, values, robot, {c: (keys.hand_eye(c), keys.metric(c)) for c in cameras})
+        covariance = {c: covariance_model[c] + systematic[c].covariance for c in cameras}
+        metric = {}
+        for c in cameras:
+            lam = values.atDouble(keys.metric(c))
+            metric[c] = (lam, float(np.hypot(np.sqrt(block(keys.metric(c))[0, 0]), lam * systematic[c].scale_sigma_rel)))
+        used_frames = {split_view_id(v)[1] for v in views}
+        gain, axis = systematic_error_gain(self.base_T_ee, used_frames)
+        stats = {"rounds": history, "timings_s": timings, "views_used": len(views),
+                 "pairs_used": len(self.observations),
+                 "noise_calibration": {"variance_factor": calib.sigma0_sq, "design_effect": calib.kappa,
+                                       "robot_variance_factor": calib.robot_factor,
+                                       "robot_chi2_dof": calib.robot_fit},
+                 "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": axis.tolist()},
+                 "systematic": {c: systematic[c].to_json() for c in cameras}}
+        sol = Solution(ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras}, covariance=covariance,
+                       covariance_model=covariance_model, systematic=systematic, metric_scale=metric,
+                       base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
+                       depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
+                       depth_correction={v: depth_correction(values, keys, v) for v in views},
+                       init_ee_T_cam={}, stats=stats, views_dropped=[],
+                       diagnostics=motion_diagnostics(self.base_T_ee, used_frames), graph=graph, values=values,
+                       keys=keys, observations=self.observations,
+                       scene_weight_scale=1.0 / (calib.sigma0_sq * calib.kappa))
+        if wanted(self.opt.jackknife, len(used_frames)):
+            jk, suspect = linearised_jackknife(sol)
+            for c, rep in jk.items():
+                before = np.asarray(sol.covariance[c])
+                sol.covariance[c] = cover(before, np.asarray(rep["covariance"]))
+                rep["covariance_before"] = before.tolist()
+            sol.stats["jackknife"] = jk
+            sol.stats["influential_pose"] = suspect
+        for c in cameras:
+            sol.diagnostics += covariance_diagnostics(c, sol.ee_T_cam[c], sol.covariance[c])
+        # the intrinsics' own share where dataset.yaml states their sigma (solver/camera_model.py), as solve
+        add_camera_model(sol, self.ds, [w * sol.scene_weight_scale for w in self.weights], self.Ks, self.noise(calib))
+        return sol
+

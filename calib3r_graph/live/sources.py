@@ -1,0 +1,113 @@
+"""Where a live session's predictions come from, for the frames seen so far.
+
+* :class:`RecordedPredictions`: a dataset's own ``predictions/<name>/`` (a simulator's, a network's
+  run offline, an RGB-D frontend's): the subset of the frames so far.
+* :class:`IncrementalPairwise`: the pairwise RGB frontend (``frontends/pairwise.py``) run as frames
+  arrive. Its public steps are called on what is new only: features of the new frame's images
+  (``features_for``), two-view geometry of the new pairs (``pair_geometries``), both kept in memory
+  (and on disk with ``cache_dir``); then the robot checks, the robot-guided rescue of weakly
+  connected views (a pair tried once is not tried again) and the per-view aggregation run on all
+  pairs so far, since a new pair can change an old view's depth. :meth:`final` is the batch frontend
+  itself (``pairwise_predictions``, from the same caches), so the last update solves exactly the
+  predictions ``solve`` would.
+"""
+
+import itertools
+import logging
+import time
+
+from calib3r_graph.errors import SolveError
+from calib3r_graph.io.dataset import subset_dataset
+from calib3r_graph.io.predictions import Predictions, subset_predictions, view_id
+
+log = logging.getLogger(__name__)
+
+
+class RecordedPredictions:
+    def __init__(self, preds: Predictions):
+        self.preds = preds
+        self.seconds = {}
+
+    def frame_views(self, frame) -> list:
+        return [v for v in self.preds.views if v.split("/", 1)[1] == frame]
+
+    def add(self, ds, frame):
+        """Nothing to compute; the frame must have predictions."""
+        self.seconds = {"features": 0.0, "pairs": 0.0}
+        return self.frame_views(frame)
+
+    def predictions(self, ds, frames) -> Predictions:
+        return subset_predictions(self.preds, frames)
+
+    final = predictions
+
+
+class IncrementalPairwise:
+    def __init__(self, opt=None, cache_dir=None):
+        from calib3r_graph.frontends.pairwise import PairwiseOptions
+
+        self.opt = opt or PairwiseOptions()
+        self.cache_dir = cache_dir
+        self.feats, self.geoms, self.rescued = {}, {}, {}
+        self.seconds = {}
+
+    def _vids(self, ds, frames):
+        frames = set(frames)
+        return [view_id(c, f) for c in ds.cameras for f in ds.frames if f in frames and ds.image_path(c, f)]
+
+    def add(self, ds, frame) -> list:
+        """Features of the frame's views and the geometry of their pairs with every earlier view.
+        ``ds``: the dataset of the frames so far (this one included). Returns the frame's views."""
+        from calib3r_graph.frontends.pairwise import features_for, pair_geometries
+
+        new = [v for v in self._vids(ds, [frame]) if v not in self.feats]
+        t0 = time.perf_counter()
+        self.feats.update(features_for(ds, new, self.opt, self.cache_dir, progress=False))
+        t1 = time.perf_counter()
+        vids = self._vids(ds, ds.frames)
+        todo = [ab for ab in itertools.combinations(vids, 2) if ab not in self.geoms and (set(ab) & set(new))]
+        self.geoms.update(pair_geometries(ds, self.feats, todo, self.opt, self.cache_dir, progress=False))
+        self.seconds = {"features": t1 - t0, "pairs": time.perf_counter() - t1}
+        return new
+
+    def predictions(self, ds, frames) -> Predictions:
+        """The frontend's aggregation over the pairs of ``frames`` (``ds``: the dataset so far)."""
+        from calib3r_graph.frontends.pairwise import aggregate, rescue_pairs, robot_consistent
+
+        t0 = time.perf_counter()
+        sub = subset_dataset(ds, frames)
+        vids = self._vids(sub, sub.frames)
+        feats = {v: self.feats[v] for v in vids if v in self.feats}
+        candidates = [ab for ab in itertools.combinations(vids, 2) if ab in self.geoms]
+        verified = {ab: self.geoms[ab] for ab in candidates if self.geoms[ab] is not None}
+        kept, info = robot_consistent(verified, sub.base_T_ee, self.opt)
+        if self.opt.rescue:
+            todo = [ab for ab in candidates if ab not in self.rescued]
+            got = rescue_pairs(sub, feats, todo, kept, info, self.opt, progress=False)
+            for ab in todo:  # tried once (or not needed then): not tried again; views only gain pairs
+                self.rescued[ab] = got.get(ab)
+            extra = {ab: self.rescued[ab] for ab in candidates if self.rescued.get(ab) is not None}
+            if extra:
+                kept, info = robot_consistent({**verified, **extra}, sub.base_T_ee, self.opt)
+        views, pairs, _ = aggregate(sub, feats, kept, self.opt)
+        if not pairs:
+            raise SolveError("pairwise: no two of the images so far share enough verified, triangulated matches")
+        self.seconds["aggregation"] = time.perf_counter() - t0
+        return Predictions("pairwise", {"source": "calib3r-graph pairwise (live)", "metric_depth": False,
+                                        "match_noise_px": _match_noise(kept)}, views, pairs)
+
+    def final(self, ds, frames) -> Predictions:
+        """The batch frontend on ``frames``, as ``solve`` would run it (from the caches)."""
+        from calib3r_graph.frontends.pairwise import pairwise_predictions
+
+        if self.cache_dir is None:
+            return self.predictions(ds, frames)
+        return pairwise_predictions(subset_dataset(ds, frames), None, self.opt, self.cache_dir, progress=False)
+
+
+def _match_noise(kept) -> float:
+    """The batch frontend's match noise (pairwise_predictions: 1.5 x the median Sampson error, >= 0.5 px)."""
+    import numpy as np
+
+    noise = [g.stats["median_error_px"] for g in kept.values() if "median_error_px" in g.stats]
+    return float(max(0.5, 1.5 * np.median(noise))) if noise else 1.0

@@ -1,0 +1,303 @@
+"""The camera model's share of the total covariance: the intrinsics' own uncertainty, propagated.
+
+The solver takes each camera's ``fx, fy, cx, cy`` as exact: every match is lifted to 3D with
+them, ``P = d K^-1 [u, v, 1]`` (solver/observations.py), so a principal point off by a few
+pixels shears every view's point cloud by ``d * dcx / fx`` and moves the hand-eye result by an
+amount no noise-model marginal can show. Given the intrinsics' 1-sigma (``params_sigma`` in
+dataset.yaml, written by ``import`` from the board calibration, or ``solve
+--intrinsics-sigma-px F,C`` for factory values), this module adds ``Sigma_cam = J Sigma_theta
+J^T`` to the total, with ``J = d(ee_T_cam, metric scale) / d(fx, fy, cx, cy)`` of the solved
+graph.
+
+**How J is found** (the implicit function theorem, as systematic.py does for the robot's
+error field): at the solution the gradient of the graph's cost vanishes, ``g(x, theta) = 0``;
+moving theta moves the solution by ``dx / dtheta = -H^-1 dg / dtheta``, with ``H`` the graph's
+Gauss-Newton Hessian and ``dg / dtheta = sum_pairs J^T dE``: ``dE`` is the change of a pair's
+whitened 3D match residual when its matches are re-lifted with K moved by ``+-sigma``
+(central difference; the residual is linear in the lifted points) and ``J`` its whitened
+Jacobian, both from factors.match3d's own functions. Only the 3D match factors see K (the
+robot, rigidity and gauge factors do not; with ``--reprojection`` the reprojection factors'
+dependence on K is left out). No re-solve: one pass over the pairs and one solve with H. On
+the simulator it matches re-solving with each of fx, fy, cx, cy moved by 5 px within a few
+percent (tests/test_camera_model.py; docs/camera-model-uncertainty.md).
+
+The same differences give what the scene data alone say about theta: ``data_sigma_px``, from
+the Schur complement of the scene information on theta (the rest of the graph free), and
+``data_step_px``, the Gauss-Newton step that refining theta in the graph would take. These
+are reported, not applied: whether refining the intrinsics in the graph would be right is
+what they measure (docs/camera-model-uncertainty.md).
+
+Not modelled: a frontend that triangulated its depths with K (pairwise, colmap) made depths
+that depend on K too; the solver's per-view depth scale and smooth depth correction absorb the
+part of that which is smooth. The measurements on rwhe_kuka_1 (re-predicting with the moved K)
+are in docs/camera-model-uncertainty.md.
+"""
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib3r_graph.errors import InputError
+from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.solver.graph import depth_correction, point_sqrt_info
+from calib3r_graph.solver.systematic import linear_system
+from factors.match3d import Match3DMeasurement, match3d_error, match3d_residuals
+
+log = logging.getLogger(__name__)
+
+PARAMS = ("fx", "fy", "cx", "cy")
+NOT_PROPAGATED = ("camera model not in the sigma: the intrinsics carry no stated uncertainty (params_sigma in "
+                  "dataset.yaml, or solve --intrinsics-sigma-px F,C)")
+
+
+@dataclass
+class CameraModelError:
+    covariance: np.ndarray  # 6x6 on ee_T_cam's tangent [w, v] (rad, m), from every camera's intrinsics
+    scale_sigma_rel: float  # relative sigma it adds to the metric scale
+    params_sigma: tuple | None  # this camera's (fx, fy, cx, cy) 1-sigma (px), None: not given
+    source: str  # where params_sigma came from
+    shift_per_sigma: dict  # parameter -> (6,) tangent of ee_T_cam for +1 sigma of this camera's parameter
+    data_sigma_px: list | None  # what the scene data alone tell about (fx, fy, cx, cy), px (inf: nothing)
+    R_ee_cam: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(3))  # to report shifts in the ee frame
+    data_step_px: list | None = None  # how far the scene data alone would move (fx, fy, cx, cy), px (one GN step)
+
+    @property
+    def propagated(self) -> bool:
+        return self.params_sigma is not None
+
+    def to_json(self) -> dict:
+        from calib3r_graph.io.results import tangent_in_ee_frame
+
+        if not self.propagated:
+            return {"propagated": False, "why": NOT_PROPAGATED}
+        return {"propagated": True, "params_sigma_px": dict(zip(PARAMS, map(float, self.params_sigma))),
+                "source": self.source, "scale_sigma_rel": self.scale_sigma_rel,
+                "shift_per_sigma_ee_frame": {p: tangent_in_ee_frame(self.R_ee_cam, xi)
+                                             for p, xi in self.shift_per_sigma.items()},
+                "data_sigma_px": None if self.data_sigma_px is None else dict(zip(PARAMS, self.data_sigma_px)),
+                "data_step_px": None if self.data_step_px is None else dict(zip(PARAMS, self.data_step_px)),
+                "model": "Sigma_cam = J Sigma_theta J^T, J = d(ee_T_cam, metric scale)/d(fx, fy, cx, cy) of the "
+                         "solved graph (implicit function theorem); the matches' depths are held fixed"}
+
+
+def parse_intrinsics_sigma(text: str) -> tuple:
+    """``"F,C"`` (px) -> (F, F, C, C): the 1-sigma of the focal lengths and of the principal point."""
+    try:
+        f, c = (float(x) for x in text.split(","))
+    except ValueError:
+        raise InputError("--intrinsics-sigma-px", f"'{text}' is not F,C (two numbers in px, e.g. 5,4)") from None
+    if not (np.isfinite(f) and np.isfinite(c) and f >= 0 and c >= 0):
+        raise InputError("--intrinsics-sigma-px", f"'{text}': both sigmas must be finite and >= 0")
+    return (f, f, c, c)
+
+
+def with_params_sigma(ds, sigma: tuple | None, source: str):
+    """The dataset with every camera's params_sigma replaced by ``sigma`` (None: unchanged)."""
+    if sigma is None:
+        return ds
+    cameras = {n: dataclasses.replace(c, params_sigma=tuple(sigma)) for n, c in ds.cameras.items()}
+    return dataclasses.replace(ds, cameras=cameras, meta={**ds.meta, "params_sigma_source": source})
+
+
+def _moved(Ks, cameras, cam, p, h) -> dict:
+    """The grid intrinsics with camera ``cam``'s parameter ``p`` (index into PARAMS) moved by ``h``
+    px of the full image."""
+    axis = p % 2
+    out = {v: np.array(K, float) for v, K in Ks.items()}
+    for v, step in _grid_steps(Ks, cameras, cam, p, h).items():
+        out[v][axis, axis if p < 2 else 2] += step
+    return out
+
+
+class _Keys:
+    """What factors.match3d's error function reads of its CustomFactor: the keys."""
+
+    def __init__(self, keys):
+        self._keys = keys
+
+    def keys(self):
+        return self._keys
+
+
+def _pair_terms(o, w, values, keys, Ks, noise, thetas, steps):
+    """One view pair's part of the sensitivities, or None when no parameter moves it:
+    (its keys, J^T dE (D, m), dE^T dE (m, m), dE^T e (m,)) with e its whitened residual, J its
+    whitened Jacobian and dE the change of e per +1 sigma of each parameter (``steps[j][view]``:
+    that sigma on the view's grid)."""
+    keep = w > 0
+    if keep.sum() < 3:  # as add_scene_factors: no factor
+        return None
+    ca, cb = split_view_id(o.view_a)[0], split_view_id(o.view_b)[0]
+    js = [j for j, (c, _, _) in enumerate(thetas) if c in (ca, cb)]
+    if not js:
+        return None
+    o = o.subset(keep)
+    T_a, T_b = values.atPose3(keys.pose(o.view_a)), values.atPose3(keys.pose(o.view_b))
+    s_a, s_b = values.atDouble(keys.scale(o.view_a)), values.atDouble(keys.scale(o.view_b))
+    c_a, c_b = depth_correction(values, keys, o.view_a), depth_correction(values, keys, o.view_b)
+    W = point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b], T_a.between(T_b), s_b / s_a, noise, w[keep])
+    basis = (o.basis_a, o.basis_b) if noise.depth_correction_sigma > 0 else (None, None)
+    k = [keys.pose(o.view_a), keys.pose(o.view_b), keys.scale(o.view_a), keys.scale(o.view_b)]
+    k += [keys.correction(o.view_a), keys.correction(o.view_b)] if basis[0] is not None else []
+    m = Match3DMeasurement(o.pts_a, o.pts_b, W, *basis)
+    blocks = [None] * len(k)
+    e = match3d_error(m, _Keys(k), values, blocks)
+    # The residual is affine in the lifted points: its change is r(d) - r(0) for the points' change
+    # d, for all parameters at once (stacked).
+    d = np.zeros((len(js) + 1, len(o), 2, 3))
+    for i, j in enumerate(js):
+        c, p, _ = thetas[j]
+        for side, (v, cam, pts) in enumerate(((o.view_a, ca, o.pts_a), (o.view_b, cb, o.pts_b))):
+            if cam == c:
+                d[i, :, side] = _lift_derivative(pts, Ks[v], p, steps[j][v])
+    tile = (lambda x: None if x is None else np.tile(x, (len(js) + 1, 1)))
+    r = match3d_residuals(Match3DMeasurement(d[:, :, 0].reshape(-1, 3), d[:, :, 1].reshape(-1, 3),
+                                             np.zeros((d.shape[0] * len(o), 3, 3)), tile(basis[0]), tile(basis[1])),
+                          T_a, T_b, s_a, s_b, c_a, c_b).reshape(len(js) + 1, len(o), 3)
+    dE = np.zeros((len(e), len(thetas)))
+    for i, j in enumerate(js):
+        dE[:, j] = np.matmul(W, (r[i] - r[-1])[:, :, None]).reshape(-1)
+    return k, np.hstack(blocks).T @ dE, dE.T @ dE, dE.T @ e
+
+
+def _lift_derivative(pts, K, p, h):
+    """The change of points lifted as ``z K^-1 [u, v, 1]`` (so ``x = (u - cx) z / fx``) when
+    parameter ``p`` of the grid's K moves by ``h`` (first order): fx: -x h / fx, cx: -z h / fx,
+    and likewise y with fy, cy."""
+    axis = p % 2
+    d = np.zeros_like(pts)
+    d[:, axis] = -(pts[:, axis] if p < 2 else pts[:, 2]) * h / K[axis, axis]
+    return d
+
+
+def _grid_steps(Ks, cameras, cam, p, h) -> dict:
+    """{view: how far parameter ``p`` of its grid K moves} when camera ``cam``'s moves by ``h`` px:
+    the frontend grid's K is a scaled and shifted copy of the camera's, so h times the grid's scale."""
+    axis = p % 2  # fx, cx: x; fy, cy: y
+    return {v: h * K[axis, axis] / cameras[cam].K[axis, axis] for v, K in Ks.items() if split_view_id(v)[0] == cam}
+
+
+def camera_model_errors(graph, values, keys, observations, weights, Ks, noise, cameras: dict,
+                        source: str = "dataset.yaml") -> dict:
+    """{camera: CameraModelError} of a solved graph.
+
+    ``observations``, ``weights``, ``Ks``, ``noise``: what the 3D match factors of ``graph``
+    were built from (solver.graph.add_scene_factors); ``cameras``: {name: Camera} with
+    ``params_sigma`` (px) or None.
+    """
+    thetas = [(c, p, float(s)) for c in keys.cameras if cameras[c].params_sigma is not None
+              for p, s in enumerate(cameras[c].params_sigma) if s > 0]
+    out = {c: CameraModelError(np.zeros((6, 6)), 0.0, None, "", {}, None) for c in keys.cameras}
+    for c in keys.cameras:  # given but all zero: propagated, and nothing to add
+        if cameras[c].params_sigma is not None:
+            out[c] = CameraModelError(np.zeros((6, 6)), 0.0, tuple(map(float, cameras[c].params_sigma)), source, {},
+                                      [float("inf")] * 4)
+    if not thetas:
+        return out
+    H, offsets, _ = linear_system(graph, values)
+    steps = [_grid_steps(Ks, cameras, c, p, s) for c, p, s in thetas]
+    n, mm = H.shape[0], len(thetas)
+    G, info, grad = np.zeros((n, mm)), np.zeros((mm, mm)), np.zeros(mm)
+    for o, w in zip(observations, weights):
+        terms = _pair_terms(o, w, values, keys, Ks, noise, thetas, steps)
+        if terms is None:
+            continue
+        k, JdE, dEdE, dEe = terms
+        row = 0
+        for key in k:
+            a, d = offsets[key]
+            G[a:a + d] += JdE[row:row + d]
+            row += d
+        info += dEdE
+        grad += dEe
+    HiG = np.linalg.solve(H, G)
+    dx = -HiG  # (n, m): the solution's move for +1 sigma of each parameter (implicit function theorem)
+    reduced = info - G.T @ HiG  # the scene's information on theta, the rest of the graph free (Schur complement)
+    sig = np.array([t[2] for t in thetas])
+    try:
+        data_sigma = np.sqrt(np.maximum(np.diag(np.linalg.inv(reduced)), 0)) * sig
+        data_step = -np.linalg.solve(reduced, grad) * sig  # what refining theta in the graph would do (one GN step)
+    except np.linalg.LinAlgError:
+        data_sigma, data_step = np.full(mm, np.inf), np.zeros(mm)
+    for c in keys.cameras:
+        e, s_key = keys.hand_eye(c), keys.metric(c)
+        a, d = offsets[e]
+        X = dx[a:a + d]
+        lam = values.atDouble(s_key)
+        scale = dx[offsets[s_key][0]] / lam if s_key in offsets else np.zeros(mm)
+        mine = [j for j, t in enumerate(thetas) if t[0] == c]
+        data, step = [float("inf")] * 4, [0.0] * 4
+        for j in mine:
+            data[thetas[j][1]], step[thetas[j][1]] = float(data_sigma[j]), float(data_step[j])
+        given = out[c].params_sigma
+        out[c] = CameraModelError(X @ X.T, float(np.sqrt(scale @ scale)), given, source if given else "",
+                                  {PARAMS[thetas[j][1]]: X[:, j] for j in mine}, data if given else None,
+                                  values.atPose3(e).rotation().matrix(), step if given else None)
+    return out
+
+
+# Below these a share is not worth a warning (the same limits as uncertainty.covariance_diagnostics)
+WEAK_MM, WEAK_DEG = 2.0, 0.2
+
+
+def dominance(camera, T_ee_cam, rest, err) -> str | None:
+    """A warning when the camera model's share is the larger part of a sigma above WEAK_MM /
+    WEAK_DEG: more robot poses will not shrink it, better intrinsics will."""
+    from calib3r_graph.io.results import uncertainty_report
+
+    if not err.propagated:
+        return None
+    cam = uncertainty_report(T_ee_cam, err.covariance)["sigma_ee_frame"]
+    other = uncertainty_report(T_ee_cam, rest)["sigma_ee_frame"]
+    worst = [(a, cam[a], lim) for a, lim in (("x_mm", WEAK_MM), ("y_mm", WEAK_MM), ("z_mm", WEAK_MM),
+                                             ("rx_deg", WEAK_DEG), ("ry_deg", WEAK_DEG), ("rz_deg", WEAK_DEG))
+             if np.hypot(cam[a], other[a]) > lim and cam[a] > other[a]]
+    if not worst:
+        return None
+    axes = ", ".join(f"{a.split('_')[0]} {v:.2f} {a.split('_')[1]}" for a, v, _ in worst)
+    given = " ".join(f"{x:.2g}" for x in err.params_sigma)
+    return (f"{camera}: the intrinsics' uncertainty (fx fy cx cy ± {given} px) is the larger part of the sigma "
+            f"({axes} of ee_T_cam from the camera model alone): calibrate the intrinsics more precisely (a board "
+            "in many images, tilted and covering the corners) rather than adding robot poses")
+
+
+def add_camera_model(sol, ds, weights, Ks, noise):
+    """Add each camera's camera-model share to ``sol``'s total covariance and metric-scale sigma,
+    after the jackknife's cover (the leave-one-out solves share the intrinsics, so their spread
+    holds none of it); ``sol.stats["camera_model"]`` records it."""
+    t = time.perf_counter()
+    cm = camera_model_errors(sol.graph, sol.values, sol.keys, sol.observations, weights, Ks, noise,
+                             {c: ds.cameras[c] for c in sol.keys.cameras},
+                             ds.meta.get("params_sigma_source", "dataset.yaml"))
+    for c, err in cm.items():
+        msg = dominance(c, sol.ee_T_cam[c], np.asarray(sol.covariance[c]), err)
+        if msg:
+            log.warning("%s", msg)
+            sol.diagnostics.append(msg)
+        sol.covariance[c] = np.asarray(sol.covariance[c]) + err.covariance
+        lam, sigma = sol.metric_scale[c]
+        sol.metric_scale[c] = (lam, float(np.hypot(sigma, lam * err.scale_sigma_rel)))
+    sol.camera_model = cm
+    sol.stats["camera_model"] = {c: e.to_json() for c, e in cm.items()}
+    sol.stats["timings_s"]["camera_model"] = time.perf_counter() - t
+    return cm
+
+
+def with_moved_intrinsics(ds, preds, camera: str, param: str, delta_px: float):
+    """(dataset, predictions) with ``camera``'s ``param`` (fx, fy, cx or cy) moved by ``delta_px``
+    (full-image px) in dataset.yaml's camera and in every one of its views' grid K: what solving
+    with other intrinsics means when the depths do not depend on K (a depth sensor, the
+    simulator). For checking the linearisation against a re-solve."""
+    from calib3r_graph.io.predictions import Predictions
+
+    p = PARAMS.index(param)
+    cam = ds.cameras[camera]
+    params = list(cam.params)
+    params[p] += delta_px
+    ds2 = dataclasses.replace(ds, cameras={**ds.cameras, camera: dataclasses.replace(cam, params=tuple(params))})
+    Ks = _moved({v: vp.K for v, vp in preds.views.items()}, ds.cameras, camera, p, delta_px)
+    views = {v: dataclasses.replace(vp, K=Ks[v]) for v, vp in preds.views.items()}
+    return ds2, Predictions(preds.name, preds.info, views, preds.pairs)

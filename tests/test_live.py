@@ -1,0 +1,143 @@
+"""Live, guided calibration (calib3r_graph/live, solver/plan.py's guidance, the linearised jackknife)."""
+
+import json
+
+import gtsam
+import numpy as np
+import pytest
+
+from calib3r_graph.cli import main
+from calib3r_graph.io.dataset import load_dataset, subset_dataset
+from calib3r_graph.io.predictions import load_predictions, subset_predictions
+from calib3r_graph.io.results import covariance_in_ee_frame
+from calib3r_graph.live import LiveSession
+from calib3r_graph.live.run import replay
+from calib3r_graph.solver import jackknife as jk
+from calib3r_graph.solver.graph import NoiseOptions
+from calib3r_graph.solver.solve import SolveOptions, solve
+
+SIM = dict(seed=5, frames=7, cameras=1, matches_per_pair=400)
+
+
+def _z(X, ref, cov):
+    """ee-frame error of X against ref, per axis, in units of cov's sigma."""
+    d = gtsam.Pose3.Logmap(ref.between(X))
+    R = X.rotation().matrix()
+    return np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, cov)))
+
+
+def test_replay_ends_at_the_batch_solve(simulated):
+    root = simulated(**SIM)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    # as the CLI's solve: the match noise from the predictions' info.json, as the session reads it
+    ref = solve(ds, preds, SolveOptions(noise=NoiseOptions(pixel_sigma_px=preds.info["match_noise_px"]),
+                                        progress=False))
+    session = LiveSession(root, predictions="sim", guide=False)
+    ups = replay(session, "random", seed=1)
+    assert [u.message.startswith("waiting") for u in ups[:3]] == [True, True, False]
+    for c, X in session.sol.ee_T_cam.items():
+        z = _z(X, ref.ee_T_cam[c], ref.covariance[c])
+        assert np.all(np.abs(z) < 0.2), z
+    # a middle update is a real, finite calibration with a total sigma
+    mid = ups[4]
+    assert len(mid.frames) == 5 and all(np.isfinite(list(s.values())).all() for s in mid.sigma_ee_frame.values())
+
+
+def test_linearised_jackknife_matches_the_re_solving_one(simulated):
+    root = simulated(**SIM)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    frames = ds.frames[:6]
+    sub, sub_preds = subset_dataset(ds, frames), subset_predictions(preds, frames)
+    sol = solve(sub, sub_preds, SolveOptions(progress=False, jackknife="never"))
+    lin, _ = jk.linearised_jackknife(sol)
+    saved = jk.METHOD
+    try:
+        jk.METHOD = "resolve"
+        res, _ = jk.jackknife(sub, sub_preds, SolveOptions(progress=False), sol, solve, progress=False)
+    finally:
+        jk.METHOD = saved
+    for c in lin:
+        a, b = lin[c]["sigma_jackknife"], res[c]["sigma_jackknife"]
+        ratios = np.array([a[k] / b[k] for k in a])
+        assert np.all(np.abs(ratios - 1) < 0.2), ratios
+
+
+def test_replay_writes_live_jsonl_and_calibration(simulated, tmp_path, capsys):
+    root = simulated(**SIM)
+    out = tmp_path / "live"
+    assert main(["-q", "live", str(root), "--replay", "recorded", "--out", str(out), "--next", "3"]) == 0
+    lines = [json.loads(x) for x in (out / "live.jsonl").read_text().splitlines()]
+    assert [x["step"] for x in lines] == list(range(1, len(lines) + 1))
+    calib = json.loads((out / "calibration.json").read_text())
+    assert not any(x["cameras"] for x in lines[:2])  # two poses: nothing to solve yet
+    for x in lines[2:]:
+        assert {"step", "frames", "latency_s", "cameras", "next_poses", "done"} <= set(x)
+        for c, cam in x["cameras"].items():
+            assert np.asarray(cam["T_ee_cam"]).shape == (4, 4)
+            assert set(cam["sigma_ee_frame"]) == set(calib["cameras"][c]["sigma_ee_frame"])
+        if not x["done"]:  # at the target there is nothing more to propose
+            assert np.asarray(x["next_poses"]).shape == (3, 4, 4)
+    assert not lines[2]["done"]
+    assert lines[-1]["frames"] == load_dataset(root).frames
+    rows = (out / "next_poses.csv").read_text().splitlines()
+    assert rows[0] == "frame,x,y,z,qx,qy,qz,qw" and len(rows) == 1 + len(lines[-1]["next_poses"])
+    assert "frames   7" in capsys.readouterr().out
+    # nothing the user had is overwritten: a second run into the same folder is refused
+    assert main(["-q", "live", str(root), "--replay", "recorded", "--out", str(out)]) != 0
+
+
+def test_a_bad_frame_is_named_and_skipped(simulated, tmp_path):
+    root = simulated(**SIM)
+    ds = load_dataset(root)
+    out = tmp_path / "live"
+    session = LiveSession(root, predictions="sim", out=out, guide=False)
+    frames = ds.frames
+    for f in frames[:3]:
+        session.add_frame(f)
+    before = (out / "live.jsonl").read_text()
+    nan = np.full((4, 4), np.nan)
+    up = session.add_frame(frames[3], nan)
+    assert up.skipped and up.skipped[0][0] == frames[3] and "finite" in up.skipped[0][1]
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"not a png")
+    up = session.add_frame(frames[4], ds.base_T_ee[frames[4]], images={"cam0": bad})
+    assert up.skipped and str(bad) in up.skipped[0][1]
+    up = session.add_frame("9999", np.eye(4))
+    assert up.skipped and "9999" in up.skipped[0][1]
+    assert up.ee_T_cam  # the last good state is carried
+    up = session.add_frame(frames[5])
+    assert not up.skipped and up.frames == frames[:3] + [frames[5]] and up.ee_T_cam
+    assert (out / "live.jsonl").read_text().startswith(before)
+
+
+def test_guidance_stays_in_the_visited_region_and_looks_at_the_scene(simulated):
+    from calib3r_graph.solver.plan import candidate_poses, scene_geometry
+
+    root = simulated(**SIM)
+    session = LiveSession(root, predictions="sim", k_next=5, margin_m=0.05)
+    for f in load_dataset(root).frames[:5]:
+        up = session.add_frame(f)
+    assert len(up.next_poses) == 5
+    visited = np.array([T.translation() for T in session.base_T_ee.values()])
+    lo, hi = visited.min(0) - 0.05, visited.max(0) + 0.05
+    X = session.sol.ee_T_cam["cam0"]
+    centroid, dist = scene_geometry(session.sol)
+    for T in up.next_poses:
+        E = gtsam.Pose3(np.array(T))
+        assert np.all(E.translation() >= lo - 1e-9) and np.all(E.translation() <= hi + 1e-9)
+        C = E.compose(X)
+        to_scene = centroid - C.translation()
+        assert dist.min() * 0.99 <= np.linalg.norm(to_scene) <= dist.max() * 1.01
+    kinds = {k for k, _ in candidate_poses(session.sol, session.base_T_ee)}
+    assert {"toward", "away", "rotate"} <= kinds or {"toward", "rotate"} <= kinds or {"away", "rotate"} <= kinds
+
+
+@pytest.mark.parametrize("order", ["guided"])
+def test_guided_replay_uses_each_frame_once(simulated, order):
+    root = simulated(**SIM)
+    session = LiveSession(root, predictions="sim")
+    ups = replay(session, order)
+    frames = ups[-1].frames
+    assert sorted(frames) == sorted(load_dataset(root).frames) and len(set(frames)) == len(frames)
