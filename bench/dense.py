@@ -212,17 +212,28 @@ def picture(res_dir: Path, path: Path, title: str):
     if len(P) > 300000:
         keep = np.random.default_rng(0).choice(len(P), 300000, replace=False)
         P, C = P[keep], C[keep]
+    lo, hi = np.percentile(P, [2, 98], axis=0)  # stray points would dwarf the scene (as the report does)
+    keep = np.all((P >= lo - 0.1 * (hi - lo)) & (P <= hi + 0.1 * (hi - lo)), axis=1)
+    P, C = P[keep], C[keep]
     c = np.median(P, 0)
-    _, _, Vt = np.linalg.svd(P[::10] - c, full_matrices=False)  # look along the cloud's thinnest direction
-    fig, axes = plt.subplots(1, 2, figsize=(14, 6.5))
-    for ax, (i, j, name) in zip(axes, ((0, 1, "along the cloud's normal"), (0, 2, "from the side"))):
-        q = (P - c) @ Vt.T
-        order = np.argsort(q[:, 3 - i - j]) if name.startswith("along") else np.argsort(-q[:, 1])
-        ax.scatter(q[order, i] * 1e3, q[order, j] * 1e3, c=C[order], s=0.3, linewidths=0)
-        ax.set_aspect("equal")
-        ax.set_xlabel("mm")
-        ax.set_ylabel("mm")
-        ax.set_title(name)
+    _, _, Vt = np.linalg.svd(P[::10] - c, full_matrices=False)  # the cloud's main plane
+    q = (P - c) @ Vt.T * 1e3
+    fig = plt.figure(figsize=(15, 6.5))
+    ax = fig.add_subplot(1, 2, 1)
+    order = np.argsort(q[:, 2])  # nearest to the viewer last
+    ax.scatter(q[order, 0], q[order, 1], c=C[order], s=0.3, linewidths=0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("mm")
+    ax.set_ylabel("mm")
+    ax.set_title("along the cloud's main normal")
+    ax = fig.add_subplot(1, 2, 2, projection="3d")
+    ax.scatter(q[:, 0], q[:, 1], q[:, 2], c=C, s=0.2, linewidths=0)
+    ax.view_init(elev=20, azim=-60)
+    ax.set_box_aspect(np.ptp(q, axis=0))
+    ax.set_xlabel("mm")
+    ax.set_ylabel("mm")
+    ax.set_zlabel("mm")
+    ax.set_title("oblique")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -242,7 +253,8 @@ def one(name: str, work: Path, real: Path, out_json: Path):
     figures, state = reconstruct_with_state(load_dataset(ds_dir, skip_missing=True), read_result(res_dir), opt,
                                             res_dir)
     figures["wall_s"] = time.perf_counter() - t
-    row = {"name": name, "dense": figures}
+    cam = next(iter(load_dataset(ds_dir, skip_missing=True).cameras.values()))
+    row = {"name": name, "dense": figures, "image": f"{cam.width}x{cam.height}"}
     if name == "sim":
         row["sim"] = sim_measures(ds_dir, res_dir, state, opt.voxel_mm * 1e-3)
     else:
@@ -253,13 +265,15 @@ def one(name: str, work: Path, real: Path, out_json: Path):
 
 def table(rows: list) -> str:
     f = lambda x, spec=".2f": "–" if x is None else format(x, spec)  # noqa: E731
-    lines = ["| run | views (skipped) | points before voxel | points in dense.ply | coverage per view | s per view "
-             "| peak memory | disagreement median / p90 |", "|---|---|---|---|---|---|---|---|"]
+    lines = ["| run | image | views (skipped) | points before voxel | points in dense.ply | coverage per view | "
+             "s per view (wall) | CPU s per view | peak memory | disagreement median / p90 |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         d = r["dense"]
         g = d["disagreement"]
-        lines.append(f"| {r['name']} | {d['views_used']} ({len(d['views_skipped'])}) | {d['points_before_voxel']} | "
-                     f"{d['points']} | {100 * d['coverage_mean']:.0f} % | {d['seconds_per_view']:.1f} | "
+        lines.append(f"| {r['name']} | {r.get('image', '')} | {d['views_used']} ({len(d['views_skipped'])}) | "
+                     f"{d['points_before_voxel']} | {d['points']} | {100 * d['coverage_mean']:.0f} % | "
+                     f"{d['seconds_per_view']:.1f} | {f(d.get('cpu_seconds_per_view'), '.1f')} | "
                      f"{d['peak_memory_mb'] / 1024:.1f} GB | {f(g['median_mm'])} / {f(g['p90_mm'])} mm |")
     for r in rows:
         if "sim" in r:
@@ -300,6 +314,7 @@ def main():
     ap.add_argument("--real", default=str(ROOT.parent / "shared" / "real"))
     ap.add_argument("--recordings", default="rwhe_kuka_1,rwhe_kuka_2,tabb_ds1")
     ap.add_argument("--skip-sim", action="store_true")
+    ap.add_argument("--table-only", action="store_true", help="rebuild dense.md from the runs' JSON in --work")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     ap.add_argument("--out-json", help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -312,6 +327,9 @@ def main():
     rows = []
     for name in names:
         out = work / f"{name}_bench.json"
+        if a.table_only:
+            rows.append(json.loads(out.read_text()))
+            continue
         subprocess.run([sys.executable, __file__, "--work", str(work), "--real", str(real), "--one", name,
                         "--out-json", str(out)], check=True)
         rows.append(json.loads(out.read_text()))

@@ -1,5 +1,6 @@
-"""Speed of the pairwise frontend: rendered scenes of 15, 30 and 55 frames at 640x480, and
-rwhe_kuka_1 (30 images of 1928x1208, SIFT at 1600 px), from images to predictions, nothing cached.
+"""Speed of the pairwise frontend: rendered scenes of 15, 30 and 55 frames at 640x480, and two
+public recordings: rwhe_kuka_1 (30 images of 1928x1208, SIFT at 1600 px) and tabb_ds1 (88 images
+of 640x480), from images to predictions, nothing cached.
 
 Per run: the images, the pairs matched against all pairs, the wall-clock and CPU seconds (the
 machine may be shared: CPU seconds over the workers say what the frontend itself costs), the
@@ -10,7 +11,8 @@ time grows (2 = quadratic). ``--solve`` also solves each rendered scene's predic
 the hand-eye error to the truth. Prints a table and writes bench/results/frontend_speed.json.
 
     .venv/bin/python bench/frontend_speed.py [--frames 15,30,55] [--workers 2] [--all-pairs]
-        [--all-pairs-max 30] [--solve] [--real ../shared/real] [--work /tmp/calib3r-frontend-speed]
+        [--all-pairs-max 30] [--solve] [--recordings rwhe_kuka_1,tabb_ds1] [--real ../shared/real]
+        [--work /tmp/calib3r-frontend-speed]
 """
 
 import os
@@ -46,15 +48,20 @@ def rendered(work: Path, frames: int) -> Path:
     return root
 
 
-def kuka(work: Path, real: Path) -> Path | None:
-    src = real / "rwhe_kuka_1"
+# The public recordings, as bench/real.py imports them: (format, board's inner corners)
+RECORDINGS = {"rwhe_kuka_1": ("rwhe", (28, 17)), "rwhe_kuka_2": ("rwhe", (24, 17)), "tabb_ds1": ("tabb", None)}
+
+
+def recording(work: Path, real: Path, name: str) -> Path | None:
+    """``calib3r-graph import`` of a public recording into work (cached), or None without it."""
+    src = real / name
     if not src.is_dir():
         return None
-    root = work / "rwhe_kuka_1"
+    root = work / name
     if not (root / "dataset.yaml").exists():
         from calib3r_graph.importers import import_recording
 
-        import_recording("rwhe", src, root, (28, 17), progress=False)
+        import_recording(RECORDINGS[name][0], src, root, RECORDINGS[name][1], progress=False)
     return root
 
 
@@ -118,7 +125,8 @@ def cli():
     p.add_argument("--all-pairs", action="store_true", help="also match every pair, for comparison")
     p.add_argument("--all-pairs-max", type=int, default=30, help="... on the scenes of at most this many frames")
     p.add_argument("--real", default=str(ROOT.parent / "shared" / "real"))
-    p.add_argument("--no-real", action="store_true")
+    p.add_argument("--recordings", default="rwhe_kuka_1,tabb_ds1",
+                   help=f"public recordings to time, of {', '.join(RECORDINGS)} ('' for none)")
     p.add_argument("--solve", action="store_true", help="also solve the rendered scenes and give the error to the truth")
     p.add_argument("--work", default="/tmp/calib3r-frontend-speed")
     p.add_argument("--out", default=str(ROOT / "bench" / "results" / "frontend_speed.json"))
@@ -127,8 +135,9 @@ def cli():
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     scenes = [(f"rendered {n}", rendered(work, n)) for n in map(int, args.frames.split(","))]
-    if not args.no_real and (root := kuka(work, Path(args.real))) is not None:
-        scenes.append(("rwhe_kuka_1", root))
+    for name in args.recordings.split(",") if args.recordings else []:
+        if (root := recording(work, Path(args.real), name)) is not None:
+            scenes.append((name, root))
     rows = []
     for name, root in scenes:
         modes = [args.partners]

@@ -66,7 +66,8 @@ def cmd_solve(args):
     summary = write_results(out, ds, preds, sol, write_cloud=not args.no_cloud, extra=report, dense=dense)
     print(summary, end="")
     print(f"  wrote {out}/calibration.json, trajectory.csv, summary.txt"
-          + ("" if args.no_cloud else ", reconstruction.ply") + (", dense.ply, mesh.ply, dense.json" if args.dense else "")
+          + ("" if args.no_cloud else ", reconstruction.ply")
+          + (", dense.ply, mesh.ply, dense.json" if args.dense else "")
           + ("" if args.no_report else ", report.html"))
 
 

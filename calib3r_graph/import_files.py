@@ -186,12 +186,16 @@ def import_files(dst, images: list, poses: str, pose_format: str | None, unit: s
     if board_obj is not None:
         pattern = boards.to_pattern(board_obj)
     for j, (dets, cam_T_board, K, dist) in enumerate(detections):
+        sigma = None  # given intrinsics carry no stated sigma (solve --intrinsics-sigma-px states one)
         if given is None:
             K_board = K
-            K, dist = refine_intrinsics_with_robot(K, dist, sizes[j], dets, cam_T_board, base_T_ee, pattern)
+            K, dist, sigma = refine_intrinsics_with_robot(K, dist, sizes[j], dets, cam_T_board, base_T_ee, pattern,
+                                                          with_sigma=True)
             lines.append(f"  cam{j}: refined with the robot's metric motion (pattern-ba): fx {K[0, 0]:.1f} "
-                         f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f} (board alone: fx {K_board[0, 0]:.1f})")
-        cams.append(opencv_camera(f"cam{j}", sizes[j], K, dist))
+                         f"fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f} (board alone: fx {K_board[0, 0]:.1f})"
+                         + ("" if sigma is None else ", 1-sigma fx fy cx cy " + " ".join(f"{x:.2f}" for x in sigma)
+                            + " px"))
+        cams.append(opencv_camera(f"cam{j}", sizes[j], K, dist, params_sigma=sigma))
     sources = {f: {**{c.name: str(files[f]) for c, files in zip(cams, image_of)}, "pose": pose_of[f].where}
                for f in frames}
     _write(dst, cams, image_of, base_T_ee, pattern,

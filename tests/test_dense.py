@@ -3,6 +3,7 @@
 
 import hashlib
 import json
+import re
 import shutil
 
 import cv2
@@ -17,6 +18,7 @@ from calib3r_graph.dense.fuse import read_dense_ply
 from calib3r_graph.dense.run import DenseOptions, compute_depths
 from calib3r_graph.dense.views import read_result
 from calib3r_graph.io.dataset import load_dataset
+from calib3r_graph.report.scene import MAX_DENSE_POINTS
 from calib3r_graph.simulate import scene_from_simulation
 
 
@@ -25,7 +27,7 @@ def solved(simulated, tmp_path_factory):
     """(dataset, result) of ``solve --dense --dense-source stereo`` on a rendered scene."""
     ds = simulated(seed=3, frames=10, images=True, width=320, height=240)
     out = tmp_path_factory.mktemp("dense") / "res"
-    assert main(["-q", "solve", str(ds), "--out", str(out), "--no-report", "--jackknife", "never", "--dense",
+    assert main(["-q", "solve", str(ds), "--out", str(out), "--jackknife", "never", "--dense",
                  "--dense-source", "stereo"]) == 0
     return ds, out
 
@@ -48,6 +50,16 @@ def test_dense_points_lie_on_the_true_surface(solved):
     cal = json.loads((out / "calibration.json").read_text())  # solve --dense puts the figures in both
     assert cal["dense"]["points"] == len(d["points"]) and cal["dense"]["source"] == "stereo"
     assert "cross-view surface disagreement" in (out / "summary.txt").read_text()
+
+
+def test_report_shows_the_dense_cloud_and_keeps_the_sparse_one(solved):
+    _, out = solved
+    page = (out / "report.html").read_text()
+    data = json.loads(re.search(r'<script type="application/json" id="report-data">(.*?)</script>', page, re.S)[1])
+    n = min(len(read_dense_ply(out / "dense.ply")["points"]), MAX_DENSE_POINTS)
+    assert data["dense_points"] > 0.9 * n  # (the 1-99 % box drops stray points)
+    assert f"dense cloud ({data['dense_points']} points" in page and "sparse point cloud (" in page
+    assert len(page.encode()) < 10e6
 
 
 def test_wrong_hand_eye_raises_the_disagreement(solved):
@@ -95,3 +107,19 @@ def test_result_folder_without_a_solve_is_a_one_line_error(solved, tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "calibration.json" in err[0] and "solve" in err[0], err
     assert list(empty.iterdir()) == []
+
+
+@pytest.mark.parametrize("source, median_mm", [("depth", 1.0), ("predictions", 3.0)])
+def test_sensor_depth_and_dense_predictions_are_fused_directly(solved, tmp_path, source, median_mm):
+    """The simulator's depth/ (mm PNG) and its foundation-like predictions (1.5 % smooth distortion,
+    corrected by the solve's per-view depth correction) are fused without stereo."""
+    ds, out = solved
+    res = tmp_path / "res"
+    shutil.copytree(out, res)
+    assert main(["-q", "reconstruct", str(res), str(ds), "--dense-source", source]) == 0
+    figures = json.loads((res / "dense.json").read_text())
+    assert figures["source"] == source and figures["views_used"] == 10
+    scene = scene_from_simulation(yaml.safe_load((ds / "ground_truth.yaml").read_text())["simulation"])
+    pts = read_dense_ply(res / "dense.ply")["points"]
+    dist = scene.scene.compute_distance(o3d.core.Tensor(pts.astype(np.float32))).numpy() * 1e3
+    assert np.median(dist) < median_mm, np.median(dist)

@@ -55,6 +55,7 @@ class DenseState:
     skipped: dict = field(default_factory=dict)  # view -> reason
     source: str = "stereo"
     depth_seconds: float = 0.0
+    depth_cpu_seconds: float = 0.0  # CPU time of all this process's threads (a shared machine's wall time varies)
 
 
 def _subset(views: dict, n: int | None) -> dict:
@@ -158,7 +159,8 @@ def _stereo_depth(state: DenseState, result: SolveResult, opt: DenseOptions):
                                 if v in ranges else "sees none of the solve's scene points")
             continue
         rays = stereo.pixel_rays(dv.K, dv.size)
-        est = [e for u in nbrs if (e := stereo.pair_depth(dv, usable[u], ranges[v], rays, opt.voxel_mm * 1e-3)) is not None]
+        est = [e for u in nbrs
+               if (e := stereo.pair_depth(dv, usable[u], ranges[v], rays, opt.voxel_mm * 1e-3)) is not None]
         if len(est) < 2:
             state.skipped[v] = "the pairs with its neighbours could not be rectified"
             continue
@@ -179,7 +181,7 @@ def compute_depths(ds, result: SolveResult, opt: DenseOptions, ee_T_cam: dict | 
         raise InputError(result.dir / "trajectory.csv", f"no solved view belongs to the dataset {ds.root}")
     state = DenseState(views)
     state.source, extra = _source(ds, result, opt.source)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), _cpu_seconds()
     if state.source == "stereo":
         _stereo_depth(state, result, opt)
     else:
@@ -187,12 +189,18 @@ def compute_depths(ds, result: SolveResult, opt: DenseOptions, ee_T_cam: dict | 
         ranges, seen = stereo.depth_ranges(views, _sparse_points(result, views))
         state.check_pairs = {v: _overlap_neighbours(v, seen, CHECK_PAIRS) for v in views}
     state.depth_seconds = time.perf_counter() - t0
+    state.depth_cpu_seconds = _cpu_seconds() - cpu0
     for v, why in state.skipped.items():
         log.warning("dense: %s skipped: %s", v, why)
     if not state.depths:
         raise SolveError(f"dense: no view gave a depth map ({len(state.skipped)} skipped; first: "
                          f"{next(iter(state.skipped.items()), ('', ''))[0]}: {next(iter(state.skipped.values()), '')})")
     return state
+
+
+def _cpu_seconds() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def _overlap_neighbours(v, seen: dict, n: int) -> list:
@@ -240,6 +248,7 @@ def reconstruct_with_state(ds, result: SolveResult, opt: DenseOptions, out_dir) 
                "mesh_vertices": int(len(mesh.vertices)), "mesh_triangles": int(len(mesh.triangles)),
                "coverage_mean": float(np.mean(coverage)),
                "seconds_per_view": state.depth_seconds / max(len(state.views), 1),
+               "cpu_seconds_per_view": state.depth_cpu_seconds / max(len(state.views), 1),
                "seconds": {"depth": t1 - t0, "fusion": t2 - t1, "total": time.perf_counter() - t0},
                "peak_memory_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                "disagreement": {**disagreement, "poses": "robot chain base_T_ee . ee_T_cam"}}

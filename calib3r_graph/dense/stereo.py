@@ -26,8 +26,8 @@ MAX_BASELINE_ALONG_AXIS = 0.57
 # SGBM compares square windows: beyond about 40 deg between the optical axes the same surface looks
 # too different (foreshortening) after rectification.
 MAX_AXIS_ANGLE_DEG = 40.0
-MAX_DISPARITIES = 256
-REFINE_WINDOW, REFINE_ITERATIONS, REFINE_MAX_PX = 7, 3, 1.5  # SGBM's time grows with the disparity range; wider ranges give up the nearest depths
+MAX_DISPARITIES = 256  # SGBM's time grows with the disparity range; wider ranges give up the nearest depths
+REFINE_WINDOW, REFINE_ITERATIONS, REFINE_MAX_PX = 7, 3, 1.5  # see refine_disparity
 
 
 @dataclass
@@ -148,7 +148,13 @@ def refine_disparity(left: np.ndarray, right: np.ndarray, disp: np.ndarray) -> n
         num = cv2.boxFilter(g * r, -1, win, normalize=False)
         den = cv2.boxFilter(g * g, -1, win, normalize=False)
         d -= np.clip(num / np.maximum(den, 1e-6), -0.5, 0.5)  # right(x - d - e) ~ right(x - d) - g e
-    d[~ok | (np.abs(d - np.where(ok, disp, 0)) > REFINE_MAX_PX)] = np.nan
+    # Each pixel's own disparity noise: the residual's noise (both images', measured as the MAD of the
+    # last residuals) over the window's gradient energy. Where it exceeds DISPARITY_SIGMA_PX the window
+    # has too little texture (a board's uniform squares, a white wall): SGBM only carried a depth over
+    # it from the edges, and the same wrong depth comes back from every view, so no fusion averages it out.
+    sigma_r = 1.4826 * float(np.median(np.abs(r[ok]))) if ok.any() else np.inf
+    sigma_d = sigma_r / np.sqrt(np.maximum(den, 1e-12))
+    d[~ok | (np.abs(d - np.where(ok, disp, 0)) > REFINE_MAX_PX) | (sigma_d > DISPARITY_SIGMA_PX)] = np.nan
     return d
 
 

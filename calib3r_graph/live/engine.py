@@ -1,11 +1,14 @@
 """The incremental engine: frames arrive one at a time, the calibration follows each.
 
 Each update takes the predictions of the frames so far (``sources.py``: a recording's, or the
-pairwise frontend run incrementally), places the new views, and re-solves the joint graph of
-``solver/graph.py`` by Levenberg-Marquardt **warm-started from the previous solution**: the old
-views start where they were, a new view starts from its best pairwise Sim(3) to a view already
-placed (the same RANSAC + Umeyama as ``solve``'s initialisation), so LM converges in a few
-iterations. Why not iSAM2 (measured in docs/live.md): every update also changes the weights of
+pairwise frontend run incrementally), places the new views, and takes **one Gauss-Newton step** on
+the joint graph of ``solver/graph.py``, **warm-started from the previous solution**: the old views
+start where they were, a new view from its best pairwise Sim(3) to a view already placed (the same
+RANSAC + Umeyama as ``solve``'s initialisation). The step's linearisation also gives the covariance
+and the linearised jackknife, so an update costs one linearisation (LM to convergence, three or
+more); the iterations are spread over the updates, each starting where the last ended. A step that
+does not lower the cost falls back to LM to convergence; the first solve (cold) runs ``solve``'s
+schedule. Why not iSAM2 (measured in docs/live.md): every update also changes the weights of
 the *old* scene factors (robust re-weighting and the noise calibration rescale all of them) and
 the pairwise frontend re-aggregates old views' depths when a new pair arrives, so iSAM2 would
 have to remove and re-add most factors at every frame; what it saves, relinearising only what
@@ -72,7 +75,6 @@ class State:
     depth_scale: dict = field(default_factory=dict)  # view -> float
     correction: dict = field(default_factory=dict)  # view -> (K,)
     ee_T_cam: dict = field(default_factory=dict)  # camera -> Pose3
-    weights: dict = field(default_factory=dict)  # (view_a, view_b) -> (N,) robust weights (conf x Huber)
     calibration: Calibration = field(default_factory=Calibration)
 
 
@@ -88,11 +90,11 @@ class Engine:
         self.last_noise, self.last_information = opt.noise, None
 
     # ------------------------------------------------------------------ one update
-    def update(self, base_T_ee: dict, preds, final=False) -> Solution:
+    def update(self, base_T_ee: dict, preds) -> Solution:
         """Solve with the frames of ``base_T_ee`` and their predictions, warm from the last update.
         A SolveError (not observable yet) leaves no state behind: the next update starts cold."""
         try:
-            sol = self._update(base_T_ee, preds, final)
+            sol = self._update(base_T_ee, preds)
         except SolveError:
             self.state = None
             raise
@@ -105,7 +107,7 @@ class Engine:
                 raise SolveError(f"{c}: not observable from these frames yet (sigma {sig_mm:.3g} mm, {sig_deg:.3g} deg)")
         return sol
 
-    def _update(self, base_T_ee: dict, preds, final=False) -> Solution:
+    def _update(self, base_T_ee: dict, preds) -> Solution:
         frames = {split_view_id(v)[1] for v in preds.views} & set(base_T_ee)
         if len(frames) < MIN_ROBOT_POSES:
             raise SolveError(f"only {len(frames)} robot pose(s) with predictions so far; the calibration needs "
@@ -137,11 +139,10 @@ class Engine:
         conf = [o.weight for o in observations]
         t = time.perf_counter()
         history = []
-        if cold or final:
-            # solve's schedule: first round on the RANSAC inliers (cold) or the IRLS weights at the warm
-            # start, irls_rounds re-weighted rounds, then the noise-calibrated round.
-            weights = ([o.weight * m for o, m in zip(observations, inliers)] if cold
-                       else ctx.warm_weights(values, conf, inliers))
+        if cold:
+            # solve's schedule: first round on the RANSAC inliers, irls_rounds re-weighted rounds, then
+            # the noise-calibrated round
+            weights = [o.weight * m for o, m in zip(observations, inliers)]
             calib = Calibration()
             for rnd in range(self.opt.irls_rounds + 1):
                 values = ctx.lm(values, weights, calib, history)
@@ -149,15 +150,22 @@ class Engine:
                                          ctx.nominal_whitening(values), conf)
             calib = ctx.calibrate(values, weights) if self.opt.noise_calibration else Calibration()
             values = ctx.lm(values, weights, calib, history)
-        else:
+        system = None
+        if not cold:
             weights = ctx.warm_weights(values, conf, inliers)
             calib = state.calibration
-            values = ctx.lm(values, weights, calib, history)
+            graph = ctx.graph(values, weights, calib)
+            stepped = ctx.gauss_newton(graph, values, history)
+            if stepped is None:  # the step did not lower the cost: LM to convergence instead
+                values = ctx.lm(values, weights, calib, history)
+            else:
+                values, system = stepped
         timings["optimisation"] = time.perf_counter() - t
         t = time.perf_counter()
-        graph = ctx.graph(values, weights, calib)
+        if system is None:
+            graph = ctx.graph(values, weights, calib)
         ctx.weights = weights
-        sol = ctx.solution(graph, values, calib, history, timings)
+        sol = ctx.solution(graph, values, calib, history, timings, system)
         self.last_noise, self.last_information = ctx.noise(calib), ctx.information  # for the guidance
         timings["covariance"] = time.perf_counter() - t
         # carried to the next update: the noise calibration at this solution, with the robust weights
@@ -166,7 +174,7 @@ class Engine:
                                      ctx.nominal_whitening(values), conf)
         next_calib = ctx.calibrate(values, new_weights) if self.opt.noise_calibration else Calibration()
         self.state = State({v: sol.base_T_cam[v] for v in views}, dict(sol.depth_scale), dict(sol.depth_correction),
-                           dict(sol.ee_T_cam), {}, next_calib)
+                           dict(sol.ee_T_cam), next_calib)
         self.depth_ref = {v: self.depth_ref[v] if self.depth_ref.get(v, (None, None, None))[2] is not None
                           and preds.views[v].depth is self._depth_of.get(v) else _valid_depth(preds.views[v].depth)
                           for v in views}
@@ -183,7 +191,7 @@ class Engine:
         sol = solve(dataclasses.replace(self.ds, base_T_ee=dict(base_T_ee)), preds, self.opt)
         views = sorted(sol.base_T_cam)
         self.state = State({v: sol.base_T_cam[v] for v in views}, dict(sol.depth_scale), dict(sol.depth_correction),
-                           dict(sol.ee_T_cam), {}, Calibration(*_calibration_of(sol)))
+                           dict(sol.ee_T_cam), Calibration(*_calibration_of(sol)))
         self.depth_ref = {v: _valid_depth(preds.views[v].depth) for v in views}
         self._depth_of = {v: preds.views[v].depth for v in views}
         used = sol.stats.get("noise_calibration", {}).get("robot_sigma_used")
@@ -202,7 +210,7 @@ class Engine:
         """The previous state, with re-aggregated views' depth scales carried over and each new view
         chained to a placed one by their pairwise Sim(3) (P_a ~ s R P_b + t, view a's units)."""
         old = self.state
-        state = State(ee_T_cam=dict(old.ee_T_cam), weights=old.weights, calibration=old.calibration)
+        state = State(ee_T_cam=dict(old.ee_T_cam), calibration=old.calibration)
         for v, T in old.base_T_cam.items():
             if v not in preds.views:
                 continue
@@ -337,6 +345,36 @@ class _Context:
         add_depth_correction_priors(graph, keys, self.views, noise)
         return graph
 
+    def gauss_newton(self, graph, values, history):
+        """One Gauss-Newton step from the warm start, on one linearisation that also serves the
+        covariance and the jackknife: (values, that system moved to the step), or None when the step
+        does not lower the cost. LM iterates to convergence within each update; here the iterations
+        are spread over the updates (each update's step starts where the last ended), as the IRLS
+        rounds are, and each update costs one linearisation instead of LM's three or more."""
+        H, offsets, factors = linear_system(graph, values)
+        g = np.zeros(len(H))
+        for _, idx, _, Atb, _ in factors:
+            g[idx] += Atb
+        e0 = 0.5 * sum(f[4] for f in factors)
+        try:
+            L = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
+            return None
+        dx = np.linalg.solve(L.T, np.linalg.solve(L, g))
+        vv = gtsam.VectorValues()
+        for k, (o, d) in offsets.items():
+            vv.insert(k, dx[o:o + d])
+        new = values.retract(vv)
+        e1 = graph.error(new)
+        history.append({"round": len(history) + 1, "iterations": 1, "initial_error": e0, "final_error": e1,
+                        "method": "gauss-newton step"})
+        if not e1 <= e0:
+            return None
+        # the same linear system about the new point: b' = b - A dx per factor
+        moved = [(ks, idx, AtA, Atb - AtA @ dx[idx], btb - 2 * dx[idx] @ Atb + dx[idx] @ AtA @ dx[idx])
+                 for ks, idx, AtA, Atb, btb in factors]
+        return new, (H, offsets, moved)
+
     def lm(self, values, weights, calib, history):
         graph = self.graph(values, weights, calib)
         values, iters, e0, e1 = _lm(graph, values, self.opt.max_iterations, "live", False)
@@ -363,9 +401,11 @@ class _Context:
             robot_factor = 1.0
         return Calibration(sigma0_sq, kappa, robot_factor, (float(chi2), 6 * n_frames - 13))
 
-    def solution(self, graph, values, calib, history, timings) -> Solution:
+    def solution(self, graph, values, calib, history, timings, system=None) -> Solution:
+        """``system``: (H, offsets, factors) of ``graph`` about ``values`` (linear_system), if already there."""
         keys, cameras, views = self.keys, self.cameras, self.views
-        H, offsets, _ = linear_system(graph, values)
+        system = system or linear_system(graph, values)
+        H, offsets, _ = system
         try:
             Hinv = np.linalg.inv(H)
         except np.linalg.LinAlgError:
@@ -403,7 +443,7 @@ class _Context:
                        keys=keys, observations=self.observations,
                        scene_weight_scale=1.0 / (calib.sigma0_sq * calib.kappa))
         if wanted(self.opt.jackknife, len(used_frames)):
-            jk, suspect = linearised_jackknife(sol)
+            jk, suspect = linearised_jackknife(sol, system)
             for c, rep in jk.items():
                 before = np.asarray(sol.covariance[c])
                 sol.covariance[c] = cover(before, np.asarray(rep["covariance"]))

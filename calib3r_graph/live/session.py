@@ -29,7 +29,6 @@ import numpy as np
 from calib3r_graph.errors import Calib3rError, InputError
 from calib3r_graph.io.dataset import Dataset, load_dataset, pose_to_row
 from calib3r_graph.io.output import atomic_write_json, atomic_write_text
-from calib3r_graph.io.predictions import split_view_id
 from calib3r_graph.io.results import calibration_json, covariance_in_ee_frame, sigma_ee_frame, uncertainty_report
 from calib3r_graph.live.engine import Engine
 from calib3r_graph.solver.solve import SolveOptions

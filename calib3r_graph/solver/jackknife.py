@@ -96,7 +96,7 @@ def _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress):
             fits[f] = s.stats["noise_calibration"]["robot_chi2_dof"]
 
 
-def linearised_jackknife(sol) -> tuple[dict, dict | None]:
+def linearised_jackknife(sol, system=None) -> tuple[dict, dict | None]:
     """:func:`jackknife` without re-solving: the same report from one linearisation of ``sol``'s graph.
 
     At the solution the whitened linear system ``sum_k ||A_k dx - b_k||^2`` has zero gradient,
@@ -113,7 +113,7 @@ def linearised_jackknife(sol) -> tuple[dict, dict | None]:
     chi2 without frame i, ``sum ||A_k dx - b_k||^2`` over the remaining robot factors, feeds
     :func:`influential_pose` as the re-solves' chi2 does (the robot noise level cancels in its F).
     """
-    out, fits, full = linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam))
+    out, fits, full = linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam), system)
     xis = {c: [sol.ee_T_cam[c].retract(d[c]) for d in out.values()] for c in sol.ee_T_cam}
     report = _jackknife_report(sol, xis)
     for rep in report.values():
@@ -147,11 +147,12 @@ def linear_system(graph, values) -> tuple[np.ndarray, dict, list]:
     return H, offsets, factors
 
 
-def linearised_leave_one_out(graph, values, keys, views) -> tuple[dict, dict, tuple]:
+def linearised_leave_one_out(graph, values, keys, views, system=None) -> tuple[dict, dict, tuple]:
     """({frame: {camera: dx of ee_T_cam (6,) without that frame}}, {frame: (robot chi2, dof)
     without it}, (robot chi2, dof) of all), as :func:`linearised_jackknife` describes. ``keys``: the
-    graph's ``Keys``; ``views``: the solved view ids."""
-    H, offsets, factors = linear_system(graph, values)
+    graph's ``Keys``; ``views``: the solved view ids; ``system``: :func:`linear_system` of the graph
+    about ``values``, if already computed."""
+    H, offsets, factors = system or linear_system(graph, values)
     n = len(H)
     gauge = {keys.metric(c) for c in keys.cameras}
     robot_keys = {(keys.hand_eye(split_view_id(v)[0]), keys.pose(v)) for v in views}
@@ -223,7 +224,7 @@ def influential_pose(full, fits: dict, alpha=ALPHA) -> dict | None:
     residual) is tested against F(6, dof_k) at ``alpha`` over all n poses (Bonferroni). The
     arm's overall noise level cancels in F; a wrong view or pose does not. ``full``: (chi2, dof)
     of the full solve; ``fits``: {frame: (chi2, dof)} without each."""
-    from scipy import stats
+    from scipy.special import fdtrc  # F's survival function; scipy.stats would cost seconds to import
 
     if not full or not fits:
         return None
@@ -232,7 +233,7 @@ def influential_pose(full, fits: dict, alpha=ALPHA) -> dict | None:
     if dof_k < 1 or chi2_k <= 0:
         return None
     F = ((chi2 - chi2_k) / 6) / (chi2_k / dof_k)
-    p = float(stats.f.sf(F, 6, dof_k))
+    p = float(fdtrc(6, dof_k, F))
     if p >= alpha / len(fits):
         return None
     return {"frame": frame, "F": float(F), "p": p, "chi2_per_dof": chi2 / dof, "chi2_per_dof_without": chi2_k / dof_k,
