@@ -112,7 +112,7 @@ def run_order(ds_dir, pname, cache, ref, order, seed):
             z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance[c])))
             final[c] = z.tolist()
     return {"order": order, "seed": seed, "steps": steps, "wall_s": wall, "final_z": final,
-            "frames_order": ups[-1].frames if ups else []}
+            "frames_order": list(session.base_T_ee)}  # arrival order
 
 
 def frames_to_stay_near(steps) -> int | None:

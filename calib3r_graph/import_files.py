@@ -21,7 +21,7 @@ from calib3r_graph.errors import InputError
 from calib3r_graph.importers import (DIRECTION_KEYS, DIRECTIONS, apply_convention, board_poses, calibrate_intrinsics,
                                      choose_convention, convention_lines, detect_all,
                                      refine_intrinsics_with_robot, turns_record, unturned)
-from calib3r_graph.io import boards
+from calib3r_graph.io import board_turns, boards
 from calib3r_graph.io.dataset import opencv_camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.io.intrinsics_files import read_intrinsics
 from calib3r_graph.io.output import staged_directory
@@ -161,7 +161,7 @@ def import_files(dst, images: list, poses: str, pose_format: str | None, unit: s
     for j in checked:  # the first camera chooses, the others are checked under its choice
         dets, cam_T_board, K, dist = detections[j]
         conv = choose_convention({f: mats[f] for f in cam_T_board}, cam_T_board,
-                                 boards.pose_covariances(board_obj, dets, cam_T_board, K, dist), board_obj,
+                                 board_turns.pose_covariances(board_obj, dets, cam_T_board, K, dist), board_obj,
                                  unit if j == checked[0] else conv.unit,
                                  direction if j == checked[0] else DIRECTION_KEYS[conv.direction], poses,
                                  f"cam{j}'s images ({images[j]})", f"{how} of the images' and the poses' files")

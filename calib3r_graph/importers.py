@@ -14,7 +14,7 @@ each convention (as given / inverted x metres / millimetres) and the one whose r
 is smallest is used, and printed (choose_convention); when even that one leaves far more than
 the detections' own noise allows, the import is refused. A board that looks the same turned
 by 180° has each image's corner order resolved against the robot's motion first
-(boards.resolve_turns).
+(board_turns.resolve_turns).
 """
 
 import logging
@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.io import boards
+from calib3r_graph.io import board_turns, boards
 from calib3r_graph.io.boards import Board
 from calib3r_graph.io.dataset import opencv_camera, write_dataset_yaml, write_robot_poses
 from calib3r_graph.io.output import staged_directory
@@ -236,7 +236,7 @@ class Convention:
     direction: str  # a value of DIRECTIONS
     residuals: dict  # "direction, unit" -> (rotation deg, translation mm) of AX = XB, for each one tried
     expected: tuple  # (deg, mm) a correct convention leaves with these detections
-    turns: boards.Turns  # the board's turns resolved under this convention
+    turns: board_turns.Turns  # the board's turns resolved under this convention
     forced: bool = False
 
     @property
@@ -261,8 +261,8 @@ def _fit(E: dict, P: dict, cov: dict, frames):
     for a, b in pairs:
         Ad = P[b].AdjointMap()
         S = Ad @ (cov[a] + cov[b]) @ Ad.T
-        var.append((np.trace(S[:3, :3]) + 6 * boards.ROBOT_SIGMA_RAD ** 2,
-                    np.trace(S[3:, 3:]) + 6 * boards.ROBOT_SIGMA_M ** 2))
+        var.append((np.trace(S[:3, :3]) + 6 * board_turns.ROBOT_SIGMA_RAD ** 2,
+                    np.trace(S[3:, 3:]) + 6 * board_turns.ROBOT_SIGMA_M ** 2))
     var = np.array(var)
     alphas = np.array([gtsam.Rot3.Logmap(x.rotation()) for x in A])
     betas = np.array([gtsam.Rot3.Logmap(y.rotation()) for y in B])
@@ -287,7 +287,7 @@ def fits(residual, expected) -> bool:
 def choose_convention(mats: dict, cam_T_board: dict, covariances: dict, board: Board, unit=None, direction=None,
                       poses="robot poses", images="the images", pairing="in order") -> Convention:
     """The pose convention (unit m|mm, direction) under which the robot's motion and the board's
-    agree (AX = XB), with the board's turns resolved under each (boards.resolve_turns).
+    agree (AX = XB), with the board's turns resolved under each (board_turns.resolve_turns).
 
     ``unit``/``direction`` (a key of DIRECTIONS) force them: the choice is then among the rest
     only, but the fit is still checked. Raises InputError (naming ``poses``, ``images`` and how they
@@ -298,7 +298,7 @@ def choose_convention(mats: dict, cam_T_board: dict, covariances: dict, board: B
     for u in ("m", "mm"):
         for d in DIRECTIONS.values():
             E = {f: apply_convention(mats[f], u, d) for f in frames}
-            turned = boards.resolve_turns(board, cam_T_board, E, covariances)
+            turned = board_turns.resolve_turns(board, cam_T_board, E, covariances)
             _, P = unturned({}, {f: cam_T_board[f] for f in frames}, board, turned)
             results[(u, d)] = (*_fit(E, P, covariances, frames), turned)
 
@@ -320,7 +320,7 @@ def choose_convention(mats: dict, cam_T_board: dict, covariances: dict, board: B
                                     f"({results[other][0][0]:.2f} deg / {results[other][0][1]:.1f} mm): check --unit "
                                     "and --direction")
         which = (f"with {_forced(unit, direction)}, " if conv.forced else "") + f"the best, '{conv.name}',"
-        flipped = (f" ({boards.unresolved_message(board, turned)})" if turned.unresolved else
+        flipped = (f" ({board_turns.unresolved_message(board, turned)})" if turned.unresolved else
                    f" (the {board.describe()} looks the same turned by {360 // turned.n} deg: a ChArUco board removes "
                    "that doubt)" if turned.n > 1 else "")
         raise InputError(poses, f"no pose convention fits the board's motion in {images}: {which} leaves "
@@ -330,7 +330,7 @@ def choose_convention(mats: dict, cam_T_board: dict, covariances: dict, board: B
                                 f"the board moved or flipped between images{flipped}; a wrong pose format "
                                 "(--pose-format, or poses that are not the flange's)")
     if turned.unresolved:
-        raise InputError("--board", boards.unresolved_message(board, turned))
+        raise InputError("--board", board_turns.unresolved_message(board, turned))
     return conv
 
 
@@ -338,12 +338,12 @@ def _forced(unit, direction) -> str:
     return " and ".join(x for x in (direction and f"direction {direction}", unit and f"unit {unit}") if x) + " (forced)"
 
 
-def unturned(detections: dict, cam_T_board: dict, board: Board, turned: "boards.Turns") -> tuple:
+def unturned(detections: dict, cam_T_board: dict, board: Board, turned: "board_turns.Turns") -> tuple:
     """``({frame: (uv, ids)}, {frame: cam_T_board})`` renumbered as the board was really seen
     (boards.turn_detection), the poses turned to match."""
     dets = {f: (boards.turn_detection(board, uv, turned.turns.get(f, 0), turned.n), ids)
             for f, (uv, ids) in detections.items()}
-    poses = {f: boards.unturn_pose(board, P, turned.turns.get(f, 0), turned.n) for f, P in cam_T_board.items()}
+    poses = {f: board_turns.unturn_pose(board, P, turned.turns.get(f, 0), turned.n) for f, P in cam_T_board.items()}
     return dets, poses
 
 
@@ -386,7 +386,7 @@ def import_recording(fmt: str, src, dst, board=None, progress=True, unit=None, d
     corners, board_used, size = detect_all(rec.images, rec.board, progress)
     K, dist, rms, cam_T_board, board_sigma = calibrate_intrinsics(corners, board_used, size, with_sigma=True)
     mats = {f: m for (f, _), m in zip(rec.images, rec.matrices)}
-    conv = choose_convention(mats, cam_T_board, boards.pose_covariances(board_used, corners, cam_T_board, K, dist),
+    conv = choose_convention(mats, cam_T_board, board_turns.pose_covariances(board_used, corners, cam_T_board, K, dist),
                              board_used, unit, direction, src / POSE_FILES[fmt], f"the images of {src}",
                              "line by line with the images in the order of their numbers")
     unit, direction = conv.unit, conv.direction

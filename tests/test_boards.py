@@ -12,7 +12,7 @@ import yaml
 from calib3r_graph.errors import InputError
 from calib3r_graph.evaluation import pattern
 from calib3r_graph.geometry import pose_error
-from calib3r_graph.io import boards
+from calib3r_graph.io import board_turns, boards
 from calib3r_graph.io.boards import Board
 from calib3r_graph.io.dataset import Camera, load_dataset, write_dataset_yaml, write_robot_poses
 
@@ -191,7 +191,7 @@ def test_board_turns_and_renumbering():
     obj = boards.points(board)
     R, t = truth.rotation().matrix(), truth.translation()
     uv = cv2.projectPoints(obj, cv2.Rodrigues(R)[0], t, K, np.zeros(4))[0].reshape(-1, 2)
-    T = gtsam.Pose3(boards.turn_matrix(board, 1, 2))
+    T = gtsam.Pose3(board_turns.turn_matrix(board, 1, 2))
     flipped = uv[::-1].copy()  # numbered from the opposite corner: its PnP pose is truth * T
     et, er = pose_error(pnp(board, flipped, None), truth.compose(T))
     assert et < 1e-6 and er < 1e-4

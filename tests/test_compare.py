@@ -196,7 +196,8 @@ def test_the_guard_passes_what_fits_and_names_what_does_not(board_scene):
     """On the clean scene every pattern method is ok, its board residual within 2x of the PnP and robot
     noise (measured 0.05 deg / 0.43 mm against 0.06 deg / 0.49 mm); pattern-ba's corner noise is checked
     against the PnP fit's; ±inf or NaN sigmas, NaN poses and reflections are failed."""
-    from calib3r_graph.evaluation.compare import MethodFailed, _check_pattern_ba, check_result, compare
+    from calib3r_graph.evaluation.compare import compare
+    from calib3r_graph.evaluation.guard import MethodFailed, check_pattern_ba, check_result
     from calib3r_graph.evaluation.pattern import PatternBAResult
     from calib3r_graph.io.dataset import load_dataset
     from calib3r_graph.solver.graph import NoiseOptions
@@ -221,8 +222,8 @@ def test_the_guard_passes_what_fits_and_names_what_does_not(board_scene):
     dets = {"cam0": detect(ds, "cam0")}
     for px, words in ((262.775, "corner noise 263 px is"), (float("nan"), "non-finite")):
         with pytest.raises(MethodFailed, match=words):
-            _check_pattern_ba(PatternBAResult(X, {}, {}, corner_sigma_px=px), dets)
-    _check_pattern_ba(PatternBAResult(X, {}, {}, corner_sigma_px=0.3), dets)
+            check_pattern_ba(PatternBAResult(X, {}, {}, corner_sigma_px=px), dets)
+    check_pattern_ba(PatternBAResult(X, {}, {}, corner_sigma_px=0.3), dets)
 
 
 def test_triangulation_divides_by_no_zero_length_ray():

@@ -15,8 +15,9 @@ from calib3r_graph.cli import main
 from calib3r_graph.evaluation.consistency import in_sigmas
 from calib3r_graph.evaluation.evaluate import hand_eye_errors
 from calib3r_graph.frontends.pair_selection import PairSelection
-from calib3r_graph.frontends.pairwise import (Features, PairGeometry, PairwiseOptions, find_pose_disagreements,
-                                              pairwise_predictions, robot_consistent, view_depths)
+from calib3r_graph.frontends.pairwise import (Features, PairGeometry, PairwiseOptions, pairwise_predictions,
+                                              robot_consistent, view_depths)
+from calib3r_graph.frontends.pose_check import find_pose_disagreements
 from calib3r_graph.geometry import pose_error
 from calib3r_graph.io.dataset import load_dataset, load_ground_truth, subset_dataset
 from calib3r_graph.io.predictions import load_predictions
@@ -124,7 +125,7 @@ def test_a_pose_that_disagrees_with_its_image_is_named_and_its_partners_stay():
     given = dict(true, **{"0003": _perturb(true["0003"])})
     kept, _ = robot_consistent(geoms, given, PairwiseOptions())
     assert all("cam0/0003" not in ab for ab in kept)
-    kept, info, records, reasons = find_pose_disagreements(geoms, kept, given, PairwiseOptions())
+    kept, info, records, reasons = find_pose_disagreements(geoms, kept, given, PairwiseOptions(), robot_consistent)
     assert [r["view"] for r in records] == ["cam0/0003"] and set(reasons) == {"cam0/0003"}, records
     r = records[0]
     assert r["frame"] == "0003" and r["camera"] == "cam0" and r["pairs_rejected"] == r["pairs_total"] == 7

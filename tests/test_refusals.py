@@ -16,7 +16,7 @@ from calib3r_graph.cli import main
 from calib3r_graph.errors import InputError
 from calib3r_graph.evaluation import pattern
 from calib3r_graph.importers import FIT_RATIO, apply_convention, choose_convention, convention_lines
-from calib3r_graph.io import boards
+from calib3r_graph.io import board_turns, boards
 from calib3r_graph.io.dataset import load_dataset
 from tests.test_boards import K, look_at, render_view
 
@@ -110,7 +110,7 @@ def projected(board, views, sigma_px, seed=0):
 def check(board, base_T_ee, views, sigma_px, order=None):
     dets, P = projected(board, views, sigma_px)
     mats = {f"{i:04d}": base_T_ee[j].matrix() for i, j in enumerate(order or range(len(views)))}
-    return choose_convention(mats, P, boards.pose_covariances(board, dets, P, K, np.zeros(4)), board)
+    return choose_convention(mats, P, board_turns.pose_covariances(board, dets, P, K, np.zeros(4)), board)
 
 
 def test_refusal_follows_from_the_detections():
@@ -135,17 +135,17 @@ def test_refusal_follows_from_the_detections():
     mats = {f"{i:04d}": E.inverse().matrix() for i, E in enumerate(base_T_ee)}
     for M in mats.values():
         M[:3, 3] *= 1000
-    conv = choose_convention(mats, P, boards.pose_covariances(board, dets, P, K, np.zeros(4)), board)
+    conv = choose_convention(mats, P, board_turns.pose_covariances(board, dets, P, K, np.zeros(4)), board)
     assert conv.name == "inverted (file holds ee_T_base), mm"
     np.testing.assert_allclose(apply_convention(mats["0003"], conv.unit, conv.direction).matrix(),
                                base_T_ee[3].matrix(), atol=1e-9)
     # forced as they are: used and checked, reported as forced, no warning against what was given
-    forced = choose_convention(mats, P, boards.pose_covariances(board, dets, P, K, np.zeros(4)), board, "mm",
+    forced = choose_convention(mats, P, board_turns.pose_covariances(board, dets, P, K, np.zeros(4)), board, "mm",
                                "ee_T_base")
     lines = "\n".join(convention_lines(forced, "mm", "ee_T_base", "--unit, --direction"))
     assert "using 'inverted (file holds ee_T_base), mm' (forced, and checked" in lines and "  ! " not in lines
     with pytest.raises(InputError, match="with unit m \\(forced\\).*but they do as 'inverted"):
-        choose_convention(mats, P, boards.pose_covariances(board, dets, P, K, np.zeros(4)), board, "m")
+        choose_convention(mats, P, board_turns.pose_covariances(board, dets, P, K, np.zeros(4)), board, "m")
 
 
 def test_turned_board_resolved_or_refused():
@@ -159,10 +159,10 @@ def test_turned_board_resolved_or_refused():
     dets, P = projected(board, views, 0.1)
     flip = {f for k, f in enumerate(sorted(dets)) if k % 3 == 2}
     dets = {f: (uv[::-1].copy() if f in flip else uv, ids) for f, (uv, ids) in dets.items()}
-    T = gtsam.Pose3(boards.turn_matrix(board, 1, 2))
+    T = gtsam.Pose3(board_turns.turn_matrix(board, 1, 2))
     P = {f: p.compose(T) if f in flip else p for f, p in P.items()}
     mats = {f"{i:04d}": E.matrix() for i, E in enumerate(base_T_ee)}
-    conv = choose_convention(mats, P, boards.pose_covariances(board, dets, P, K, np.zeros(4)), board)
+    conv = choose_convention(mats, P, board_turns.pose_covariances(board, dets, P, K, np.zeros(4)), board)
     assert conv.turns.turned == sorted(flip) and conv.name == "as given (base_T_ee), m"
     assert conv.residuals[conv.name][0] < 3 * conv.expected[0]
     centre = boards.points(board)[:, :2].mean(0)
@@ -180,5 +180,5 @@ def test_turned_board_resolved_or_refused():
     dets, P = projected(board, views, 0.1)
     found = [pattern.Detection(f, uv, P[f], 0.0, None) for f, (uv, _) in dets.items()]
     with pytest.raises(InputError, match="dataset.yaml: the " + told):
-        boards.unturn_detections(board, found, {f"{i:04d}": E for i, E in enumerate(base_T_ee)}, K, np.zeros(4),
+        board_turns.unturn_detections(board, found, {f"{i:04d}": E for i, E in enumerate(base_T_ee)}, K, np.zeros(4),
                                  "dataset.yaml")

@@ -146,7 +146,7 @@ def test_plan_cli(tmp_path, capsys):
 
 def test_relative_rotations_equal_gtsam_logmap_up_to_a_half_turn():
     """The vectorised pairwise rotation vectors that check_motion, motion_diagnostics and
-    compare.rotates_about_two_axes share, against gtsam's Logmap pair by pair, with a pair
+    guard.rotates_about_two_axes share, against gtsam's Logmap pair by pair, with a pair
     1e-5 rad short of a half turn, where the closed form alone loses the axis."""
     import gtsam
 

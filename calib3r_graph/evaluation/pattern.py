@@ -46,7 +46,7 @@ def board_points(pattern) -> np.ndarray:
 def detect(ds, camera: str, frames=None) -> list:
     """Board points and PnP pose in every image of a camera where the board is found (a
     checkerboard or circle grid whole, a ChArUco board in part: see Detection.ids)."""
-    from calib3r_graph.io import boards
+    from calib3r_graph.io import board_turns, boards
 
     if not ds.pattern:
         raise SolveError("no pattern in dataset.yaml")
@@ -73,7 +73,7 @@ def detect(ds, camera: str, frames=None) -> list:
         R, _ = cv2.Rodrigues(rvec)
         out.append(Detection(f, uv, gtsam.Pose3(gtsam.Rot3(R), tvec.ravel()), err, ids))
     # a board that looks the same turned by 180°: each image's corner order from the robot's motion
-    return boards.unturn_detections(board, out, ds.base_T_ee, cam.K, cam.dist, ds.root / "dataset.yaml")
+    return board_turns.unturn_detections(board, out, ds.base_T_ee, cam.K, cam.dist, ds.root / "dataset.yaml")
 
 
 def camera_intrinsics(cam) -> np.ndarray:

@@ -6,6 +6,8 @@ import numpy as np
 
 from calib3r_graph.errors import InputError
 
+FULL_CONF_ANGLE_DEG = 5.0  # triangulation angle at which a depth gets full confidence
+
 
 def load_gray(path):
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
