@@ -1,6 +1,6 @@
 """Domain exceptions. The CLI turns each into one line on stderr and its exit code.
 
-Exit codes (documented in the README):
+Exit codes (documented in docs/bad-input.md):
     0  success
     1  unexpected internal error (a bug: please report it with --debug output)
     2  bad command line (argparse)

@@ -146,3 +146,30 @@ def test_guided_replay_uses_each_frame_once(simulated, order):
     ups = replay(session, order)
     frames = ups[-1].frames
     assert sorted(frames) == sorted(load_dataset(root).frames) and len(set(frames)) == len(frames)
+
+
+def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_path):
+    """--watch: frames whose pose row and predictions are there are added in the file's order, a NaN
+    row is named and skipped; a second session with --resume continues from live.jsonl."""
+    import shutil
+
+    from calib3r_graph.live.run import watch
+
+    root = tmp_path / "ds"
+    shutil.copytree(simulated(**SIM), root)
+    rows = (root / "robot_poses.csv").read_text().splitlines()
+    (root / "robot_poses.csv").write_text("\n".join(rows[:4] + ["9998,nan,0,0,0,0,0,1"]) + "\n")
+    out = tmp_path / "live"
+    session = LiveSession(root, predictions="sim", out=out, guide=False)
+    seen = []
+    watch(session, poll_s=0.01, on_update=seen.append, max_idle_s=0.05)
+    assert [len(u.frames) for u in seen] == [1, 2, 3, 3]
+    assert seen[-1].skipped[0][0] == "9998" and "NaN" in seen[-1].skipped[0][1]
+    (root / "robot_poses.csv").write_text("\n".join(rows) + "\n")  # the rest arrives; a new session resumes
+    again = LiveSession(root, predictions="sim", out=out, guide=False)
+    more = []
+    watch(again, poll_s=0.01, on_update=more.append, max_idle_s=0.05, resume=True)
+    assert more[0].step == seen[-1].step + 1 and len(more[0].frames) == 3  # the killed session's frames, one solve
+    assert more[-1].frames == [r.split(",")[0] for r in rows[1:]]
+    steps = [json.loads(x)["step"] for x in (out / "live.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, len(steps) + 1))

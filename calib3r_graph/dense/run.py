@@ -194,7 +194,9 @@ def compute_depths(ds, result: SolveResult, opt: DenseOptions, ee_T_cam: dict | 
         log.warning("dense: %s skipped: %s", v, why)
     if not state.depths:
         raise SolveError(f"dense: no view gave a depth map ({len(state.skipped)} skipped; first: "
-                         f"{next(iter(state.skipped.items()), ('', ''))[0]}: {next(iter(state.skipped.values()), '')})")
+                         f"{next(iter(state.skipped.items()), ('', ''))[0]}: {next(iter(state.skipped.values()), '')}; "
+                         "where the scene is far, one pair's depth noise can exceed the voxel: try a larger "
+                         "--voxel-mm)")
     return state
 
 

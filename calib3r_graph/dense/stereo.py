@@ -186,7 +186,16 @@ def pair_depth(a, b, zrange: tuple, rays_a: np.ndarray, max_sigma_m: float = np.
     if flip:
         ra, rb = ra[:, ::-1], rb[:, ::-1]
     log.debug("pair %s-%s: fB %.2f, z %s, disparities %d + %d", a.vid, b.vid, fB, zrange, min_disp, num)
-    disp = _matcher(min_disp, num).compute(np.ascontiguousarray(ra), np.ascontiguousarray(rb))
+    # SGBM needs min + num disparities inside the image (with room for its block): a wider range gives up
+    # the nearest depths, and a pair whose farthest useful depth already lies beyond is skipped
+    num = min(num, (ra.shape[1] - 32 - min_disp) // 16 * 16)
+    if num < 16:
+        return None
+    try:
+        disp = _matcher(min_disp, num).compute(np.ascontiguousarray(ra), np.ascontiguousarray(rb))
+    except cv2.error as e:  # a pair OpenCV cannot match is skipped, the view keeps its other pairs
+        log.debug("pair %s-%s: SGBM failed (%s)", a.vid, b.vid, str(e).splitlines()[0])
+        return None
     disp = disp.astype(np.float32) / 16.0
     # disparities at the ends of the searched range are where the matcher ran out of range, not matches
     disp[(disp < min_disp + 0.5) | (disp > min_disp + num - 1.5)] = np.nan

@@ -42,7 +42,8 @@ def tangent_in_ee_frame(R_ee_cam, xi) -> dict:
 def uncertainty_report(T_ee_cam, cov) -> dict:
     C = covariance_in_ee_frame(T_ee_cam, cov)
     sig = np.sqrt(np.maximum(np.diag(C), 0))
-    corr = C / np.outer(sig, sig)
+    s = np.outer(sig, sig)
+    corr = np.divide(C, s, out=np.zeros_like(C), where=s > 0)  # a zero share (e.g. no systematic part): no correlation
     pairs = sorted(((abs(corr[i, j]), AXES[i], AXES[j], corr[i, j]) for i in range(6) for j in range(i + 1, 6)),
                    reverse=True)[:3]
     return {"sigma_ee_frame": sigma_ee_frame(sig),

@@ -23,7 +23,7 @@ itself, one round per frame, at the cost of residuals only. :meth:`Engine.finish
 so the final result is ``solve``'s on the same frames and predictions (see its docstring for why
 not warm).
 
-The covariance at every update comes from one linearisation (``jackknife.linear_system``): the
+The covariance at every update comes from one linearisation (``jackknife.factor_system``): the
 noise model's marginal (the inverse of the information matrix), the systematic part
 (``systematic.py``) and, below ``JACKKNIFE_BELOW`` poses, the cover of the linearised
 leave-one-pose-out jackknife.
@@ -44,7 +44,7 @@ from calib3r_graph.solver.graph import (Keys, add_depth_correction_priors, add_r
                                         robot_chi2, robot_views)
 from factors.match3d import DEPTH_CORRECTION_DIM
 from calib3r_graph.solver.init import initialise, pairwise_sim3
-from calib3r_graph.solver.jackknife import cover, linear_system, linearised_jackknife, wanted
+from calib3r_graph.solver.jackknife import cover, factor_system, linearised_jackknife, wanted
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions, _lm, robust_weights
 from calib3r_graph.solver.camera_model import add_camera_model
@@ -146,8 +146,9 @@ class Engine:
             calib = Calibration()
             for rnd in range(self.opt.irls_rounds + 1):
                 values = ctx.lm(values, weights, calib, history)
-                weights = robust_weights(observations, match_residuals(observations, values, keys),
-                                         ctx.nominal_whitening(values), conf)
+                if rnd < self.opt.irls_rounds:
+                    weights = robust_weights(observations, match_residuals(observations, values, keys),
+                                             ctx.nominal_whitening(values), conf)
             calib = ctx.calibrate(values, weights) if self.opt.noise_calibration else Calibration()
             values = ctx.lm(values, weights, calib, history)
         system = None
@@ -351,7 +352,7 @@ class _Context:
         does not lower the cost. LM iterates to convergence within each update; here the iterations
         are spread over the updates (each update's step starts where the last ended), as the IRLS
         rounds are, and each update costs one linearisation instead of LM's three or more."""
-        H, offsets, factors = linear_system(graph, values)
+        H, offsets, factors = factor_system(graph, values)
         g = np.zeros(len(H))
         for _, idx, _, Atb, _ in factors:
             g[idx] += Atb
@@ -402,9 +403,9 @@ class _Context:
         return Calibration(sigma0_sq, kappa, robot_factor, (float(chi2), 6 * n_frames - 13))
 
     def solution(self, graph, values, calib, history, timings, system=None) -> Solution:
-        """``system``: (H, offsets, factors) of ``graph`` about ``values`` (linear_system), if already there."""
+        """``system``: (H, offsets, factors) of ``graph`` about ``values`` (factor_system), if already there."""
         keys, cameras, views = self.keys, self.cameras, self.views
-        system = system or linear_system(graph, values)
+        system = system or factor_system(graph, values)
         H, offsets, _ = system
         try:
             Hinv = np.linalg.inv(H)

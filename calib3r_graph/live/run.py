@@ -1,18 +1,15 @@
 """What ``calib3r-graph live`` runs: a recorded dataset replayed frame by frame (recorded, guided or
 random order), or a dataset folder watched for the frames a capture script adds."""
 
-import csv
 import json
 import logging
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.io.dataset import read_robot_poses
-from calib3r_graph.live.session import LiveSession, Update
+from calib3r_graph.live.session import LiveSession, Update, read_pose_rows
 
 log = logging.getLogger(__name__)
 
@@ -83,31 +80,6 @@ def _most_different(session, used, rest):
         return min((np.linalg.norm(gtsam.Rot3.Logmap(r.between(Rg))) for r in R), default=0.0)
 
     return max(rest, key=nearest)
-
-
-def read_pose_rows(path: Path, unit: str) -> list:
-    """[(frame, base_T_ee 4x4 or None, reason)] of every row of a robot_poses.csv being written: a row
-    that does not parse (NaN, not unit, too few columns) is named with its reason instead of failing
-    the whole file, as ``read_robot_poses`` would."""
-    if not path.is_file():
-        return []
-    lines = path.read_text(encoding="utf-8-sig").splitlines()
-    if not lines:
-        return []
-    out = []
-    for i, line in enumerate(lines[1:], start=2):
-        if not line.strip():
-            continue
-        frame = next(csv.reader([line]))[0].strip()
-        with tempfile.TemporaryDirectory() as tmp:
-            one = Path(tmp) / "row.csv"
-            one.write_text(lines[0] + "\n" + line + "\n")
-            try:
-                pose = read_robot_poses(one, unit, "a row")
-                out.append((frame, next(iter(pose.values())).matrix(), None))
-            except InputError as e:
-                out.append((frame, None, f"{path}: row {i} (frame {frame}): {e.what}"))
-    return out
 
 
 def watch(session: LiveSession, poll_s: float = 1.0, on_update=None, max_idle_s: float | None = None,

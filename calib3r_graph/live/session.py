@@ -87,8 +87,9 @@ class Update:
 
 
 def session_dataset(dataset_dir) -> Dataset:
-    """The dataset's cameras, intrinsics and robot unit; its robot poses where the file exists
-    (frames are added as they arrive, so a missing or header-only pose file is fine)."""
+    """The dataset's cameras, intrinsics and robot unit, and its robot poses: frames are added as
+    they arrive, so a missing or header-only pose file is fine, and a row that does not parse
+    (a capture script's NaN) leaves out that frame only (:func:`read_pose_rows` names it)."""
     root = Path(dataset_dir)
     quiet = logging.getLogger("calib3r_graph.io")  # images waiting for their pose row are expected here
     level = quiet.level
@@ -104,16 +105,46 @@ def session_dataset(dataset_dir) -> Dataset:
         if not meta_path.is_file():
             raise
         meta = yaml.safe_load(meta_path.read_text())
-        poses = (meta.get("robot") or {}).get("poses", "robot_poses.csv") if isinstance(meta, dict) else None
-        if poses is None or (root / poses).is_file() and "missing" not in str(e):
+        robot = (meta.get("robot") or {}) if isinstance(meta, dict) else {}
+        poses = robot.get("poses", "robot_poses.csv")
+        if e.path != str(root / poses):  # dataset.yaml itself, not the poses being written
             raise
-        with tempfile.TemporaryDirectory() as tmp:  # the cameras alone: an empty pose file beside a copy
+        with tempfile.TemporaryDirectory() as tmp:  # the cameras alone: a placeholder pose beside a copy
             shutil.copy(meta_path, Path(tmp) / "dataset.yaml")
-            (Path(tmp) / poses).write_text("frame,x,y,z,qx,qy,qz,qw\n")
+            (Path(tmp) / poses).write_text("frame,x,y,z,qx,qy,qz,qw\nplaceholder,0,0,0,0,0,0,1\n")
             ds = load_dataset(tmp)
-        return dataclasses.replace(ds, root=root)
+        good = {f: gtsam.Pose3(T) for f, T, _ in read_pose_rows(root / poses, ds.robot_unit) if T is not None}
+        return dataclasses.replace(ds, root=root, base_T_ee=good)
     finally:
         quiet.setLevel(level)
+
+
+def read_pose_rows(path: Path, unit: str) -> list:
+    """[(frame, base_T_ee 4x4 or None, reason)] of every row of a robot_poses.csv being written: a row
+    that does not parse (NaN, not unit, too few columns) is named with its reason instead of failing
+    the whole file, as ``read_robot_poses`` would (each row goes through it alone)."""
+    import csv
+    import tempfile
+
+    from calib3r_graph.io.dataset import read_robot_poses
+
+    if not path.is_file():
+        return []
+    lines = path.read_text(encoding="utf-8-sig").splitlines()
+    out = []
+    for i, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        frame = next(csv.reader([line]))[0].strip()
+        with tempfile.TemporaryDirectory() as tmp:
+            one = Path(tmp) / "row.csv"
+            one.write_text(lines[0] + "\n" + line + "\n")
+            try:
+                pose = read_robot_poses(one, unit, "a row")
+                out.append((frame, next(iter(pose.values())).matrix(), None))
+            except InputError as e:
+                out.append((frame, None, f"{path}: row {i} (frame {frame}): {e.what}"))
+    return out
 
 
 class LiveSession:

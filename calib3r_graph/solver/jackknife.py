@@ -31,9 +31,14 @@ MIN_POSES = 3  # solve.MIN_ROBOT_POSES: a leave-one-out with fewer left is no sa
 MAX_STEP = (0.5, 0.5)
 
 
-# How solve's jackknife is computed: "linearised" (one linearisation of the solved graph, a
-# downdate per pose: :func:`linearised_jackknife`) or "resolve" (n solves).
-METHOD = "linearised"
+# How solve's jackknife is computed: "resolve" (n solves) or "linearised" (one linearisation of the
+# solved graph, a downdate per pose: :func:`linearised_jackknife`). solve keeps "resolve": measured
+# on seeded 10-pose subsets (bench/live_real.py --jackknife), the linearised sigmas are 0.92-0.98 of
+# the re-solving ones on the sample but 0.36-1.12 on rwhe_kuka_1 (cover of the total 0.42-1.08): it
+# holds the robust weights and the robot noise calibration at the full solve's, and under-covers.
+# The live engine (calib3r_graph/live) uses the linearised one at every update, where n solves per
+# frame are out of reach.
+METHOD = "resolve"
 
 
 def wanted(mode: str, poses: int) -> bool:
@@ -121,17 +126,15 @@ def linearised_jackknife(sol, system=None) -> tuple[dict, dict | None]:
     return report, influential_pose(full, fits)
 
 
-def linear_system(graph, values) -> tuple[np.ndarray, dict, list]:
+def factor_system(graph, values) -> tuple[np.ndarray, dict, list]:
     """(H, offsets, factors) of ``graph`` linearised at ``values``: the dense information matrix
     ``H = sum_k A_k^T A_k`` (whitened), {key: (first column, dimension)} in key order, and per factor
     (keys, its columns, A^T A, A^T b, b^T b), from each factor's augmented information (no tall A)."""
-    from calib3r_graph.solver.systematic import _dim
+    from calib3r_graph.solver.systematic import key_offsets
 
     lin = graph.linearize(values)
-    offsets, col = {}, 0
-    for k in sorted(graph.keyVector()):
-        offsets[k] = (col, _dim(values, k))
-        col += offsets[k][1]
+    offsets = key_offsets(graph, values)
+    col = sum(d for _, d in offsets.values())
     H = np.zeros((col, col))
     factors = []
     for i in range(lin.size()):
@@ -150,9 +153,9 @@ def linear_system(graph, values) -> tuple[np.ndarray, dict, list]:
 def linearised_leave_one_out(graph, values, keys, views, system=None) -> tuple[dict, dict, tuple]:
     """({frame: {camera: dx of ee_T_cam (6,) without that frame}}, {frame: (robot chi2, dof)
     without it}, (robot chi2, dof) of all), as :func:`linearised_jackknife` describes. ``keys``: the
-    graph's ``Keys``; ``views``: the solved view ids; ``system``: :func:`linear_system` of the graph
+    graph's ``Keys``; ``views``: the solved view ids; ``system``: :func:`factor_system` of the graph
     about ``values``, if already computed."""
-    H, offsets, factors = system or linear_system(graph, values)
+    H, offsets, factors = system or factor_system(graph, values)
     n = len(H)
     gauge = {keys.metric(c) for c in keys.cameras}
     robot_keys = {(keys.hand_eye(split_view_id(v)[0]), keys.pose(v)) for v in views}

@@ -252,7 +252,8 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     * The few-pose cover (jackknife): a leave-one-out spread shrinks as 1/n with one more pose.
     ``information``: (H, offsets) of ``sol.graph`` at ``sol.values`` (computed when None).
     """
-    from calib3r_graph.solver.jackknife import cover, linear_system
+    from calib3r_graph.solver.jackknife import cover
+    from calib3r_graph.solver.systematic import linear_system
     from calib3r_graph.solver.uncertainty import systematic_error_gain
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)

@@ -171,14 +171,22 @@ def linear_system(graph, values) -> tuple[np.ndarray, dict, object]:
     return _LAST_SYSTEM[0][3]
 
 
+def key_offsets(graph, values) -> dict:
+    """{key: (first column, dimension)} of the graph's variables in sorted key order: the column
+    layout of every dense information matrix built here (values may hold variables no factor uses)."""
+    offsets, col = {}, 0
+    for k in sorted(graph.keys()):
+        offsets[k] = (col, _dim(values, k))
+        col += offsets[k][1]
+    return offsets
+
+
 def _linear_system(graph, values):
     import gtsam
 
-    ordering, offsets, col = gtsam.Ordering(), {}, 0
-    for k in sorted(graph.keys()):  # values may hold variables that no factor uses
+    offsets, ordering = key_offsets(graph, values), gtsam.Ordering()
+    for k in offsets:
         ordering.push_back(k)
-        offsets[k] = (col, _dim(values, k))
-        col += offsets[k][1]
     lin = graph.linearize(values)
     H, _ = lin.hessian(ordering)  # A^T A, without forming the (tall) dense A
     return H, offsets, lin
