@@ -226,6 +226,38 @@ def test_the_guard_passes_what_fits_and_names_what_does_not(board_scene):
     check_pattern_ba(PatternBAResult(X, {}, {}, corner_sigma_px=0.3), dets)
 
 
+def test_a_wide_honest_sigma_is_not_taken_for_garbage(board_scene):
+    """rwhe_kuka_2's orbit leaves ours 14 mm off along the optical axis with a 7 mm sigma there, and a
+    board residual of 5.7 mm, 10x park's: the guard marked that honest result failed. A result moved by
+    60 mm along ee z passes when its own covariance says 30 mm there, and fails when it claims 0.5 mm."""
+    from calib3r_graph.evaluation.compare import compare
+    from calib3r_graph.evaluation.guard import board_check, own_uncertainty_residual
+    from calib3r_graph.evaluation.pattern import detect
+    from calib3r_graph.io.dataset import load_dataset
+    from calib3r_graph.solver.graph import NoiseOptions
+
+    ds = load_dataset(board_scene)
+    park = compare(ds, None, NoiseOptions(), ["park"])["methods"]["park"]["cameras"]["cam0"]["T_ee_cam"]
+    X = gtsam.Pose3(np.asarray(park))
+    R = X.rotation().matrix()
+    off = gtsam.Pose3(gtsam.Rot3(), R.T @ np.array([0.0, 0.0, 0.06]))  # 60 mm along ee z, in X's body frame
+    moved = X.compose(off)
+    dets = {"cam0": detect(ds, "cam0")}
+
+    def cov(sigma_m):  # body-frame tangent [w, v]: sigma_m along ee z, 0.5 mm / 0.01 deg elsewhere
+        C = np.diag([np.radians(0.01) ** 2] * 3 + [0.0005 ** 2] * 3)
+        C[3:, 3:] += (sigma_m ** 2 - 0.0005 ** 2) * np.outer(R.T[:, 2], R.T[:, 2])
+        return C
+
+    solved = {"park": {"cam0": X}, "ours": {"cam0": moved}}
+    honest = board_check(ds, dets, solved, NoiseOptions(), {"ours": {"cam0": cov(0.030)}})
+    claims = board_check(ds, dets, solved, NoiseOptions(), {"ours": {"cam0": cov(0.0005)}})
+    assert "ours" not in honest["failed"], honest["failed"]
+    assert "ours" in claims["failed"] and "its own 3 sigma" in claims["failed"]["ours"], claims["failed"]
+    extra_r, extra_t = own_uncertainty_residual(ds.base_T_ee, dets["cam0"], moved, cov(0.030))
+    assert 10e-3 < extra_t < 180e-3 and extra_r < np.radians(0.1), (extra_r, extra_t)
+
+
 def test_triangulation_divides_by_no_zero_length_ray():
     """evaluate._triangulate on views that see only some of the points (a ChArUco board's partial
     detections): no 'invalid value encountered in divide', and the seen points are exact."""

@@ -168,7 +168,7 @@ def compare(ds, preds, noise, methods=METHODS, frames=None, hold_intrinsics=Fals
     model instead of refining it (used on halves: the camera is the same camera). A method that
     cannot run has status "error: ...", one whose result cannot be right "failed: ..." (run_method,
     board_check); either way the others go on."""
-    results, detections, solved = {}, {}, {}
+    results, detections, solved, covariances = {}, {}, {}, {}
     sub = subset_dataset(ds, frames) if frames is not None else ds
     key = tuple(sub.base_T_ee)
     for m in methods:
@@ -189,12 +189,13 @@ def compare(ds, preds, noise, methods=METHODS, frames=None, hold_intrinsics=Fals
         results[m] = {"cameras": cams, "seconds": seconds, "status": status}
         if X:
             solved[m] = X
+            covariances[m] = {c: C for c, C in cov.items() if c in X}
         if ("metric_scale", m) in detections:  # the reconstruction's δ_s, where the method has one
             results[m]["metric_scale"] = detections.pop(("metric_scale", m))
         log.info("%s: %s (%.1f s)", m, status, results[m]["seconds"])
     out = {"methods": results}
     if key in detections and solved:
-        check = board_check(sub, detections[key], solved, noise)
+        check = board_check(sub, detections[key], solved, noise, covariances)
         for m, reason in check["failed"].items():
             results[m].update(cameras={}, status=f"failed: {reason}")
             log.warning("%s: failed: %s", m, reason)
