@@ -24,7 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from calib3r_graph.errors import InputError, SolveError
-from calib3r_graph.frontends.common import covisibility_edges
+from calib3r_graph.frontends.common import FULL_CONF_ANGLE_DEG, covisibility_edges
 from calib3r_graph.io.output import atomic_write_text
 from calib3r_graph.io.predictions import (PairMatches, ViewPrediction, read_poses_csv,  # noqa: F401
                                           save_predictions, view_id)
@@ -140,7 +140,7 @@ def predict_colmap(ds, name="colmap", neighbours=6, max_features=2048, progress=
             xyz = np.array([rec.point3D(i).xyz for i in ids])
             z = (xyz @ T[:3, :3].T + T[:3, 3])[:, 2]
             # Confidence: full at >= 5 degrees of triangulation angle, less for far/narrow tracks.
-            angle_conf = np.clip(triangulation_angles(rec, ids, centres) / np.radians(5.0), 0.05, 1.0)
+            angle_conf = np.clip(triangulation_angles(rec, ids, centres) / np.radians(FULL_CONF_ANGLE_DEG), 0.05, 1.0)
             depth = np.zeros((cam.height, cam.width), np.float32)
             conf = np.zeros_like(depth)
             # Splat each track's depth onto the 2x2 pixels around its keypoint, so bilinear

@@ -802,6 +802,13 @@ def _view_ids(ds, frames=None):
     return out
 
 
+def match_noise_px(kept: dict) -> float:
+    """The predictions' match noise (px) from the kept pairs: 1.5 x the median Sampson error (the
+    median Hartley-Sturm correction ~ 0.67 sigma of the larger of two 2D offsets), floor 0.5 px."""
+    noise = [g.stats["median_error_px"] for g in kept.values() if "median_error_px" in g.stats]
+    return float(max(0.5, 1.5 * np.median(noise))) if noise else 1.0
+
+
 def pairwise_predictions(ds, frames=None, opt: PairwiseOptions | None = None, cache_dir=None, progress=True,
                          workers=2, name="pairwise") -> Predictions:
     """Predictions of the given frames (all if None), in memory."""
@@ -839,12 +846,10 @@ def pairwise_predictions(ds, frames=None, opt: PairwiseOptions | None = None, ca
         raise SolveError(f"pairwise: no two of the {len(vids)} images share enough verified, triangulated "
                          "matches (too little texture or overlap)")
     t3 = time.perf_counter()
-    noise = [g.stats["median_error_px"] for g in kept.values()]
     info = {"source": "calib3r-graph pairwise (OpenCV RootSIFT, essential-matrix RANSAC per pair, triangulation, "
                       "per-view scale alignment and eq. 1 aggregation)",
             "metric_depth": False,
-            # median Hartley-Sturm correction ~ 0.67 sigma of the larger of two 2D offsets; floor 0.5 px
-            "match_noise_px": float(max(0.5, 1.5 * np.median(noise))) if noise else 1.0,
+            "match_noise_px": match_noise_px(kept),
             "images": len(vids), "views": len(views), "pairs": len(pairs), "verified_pairs": len(verified),
             "pairs_matched": len(geoms), "pairs_possible": len(vids) * (len(vids) - 1) // 2,
             "pairs_matched_per_round": rounds,

@@ -72,7 +72,7 @@ class IncrementalPairwise:
 
     def predictions(self, ds, frames) -> Predictions:
         """The frontend's aggregation over the pairs of ``frames`` (``ds``: the dataset so far)."""
-        from calib3r_graph.frontends.pairwise import aggregate, rescue_pairs, robot_consistent
+        from calib3r_graph.frontends.pairwise import aggregate, match_noise_px, rescue_pairs, robot_consistent
 
         t0 = time.perf_counter()
         sub = subset_dataset(ds, frames)
@@ -94,7 +94,7 @@ class IncrementalPairwise:
             raise SolveError("pairwise: no two of the images so far share enough verified, triangulated matches")
         self.seconds["aggregation"] = time.perf_counter() - t0
         return Predictions("pairwise", {"source": "calib3r-graph pairwise (live)", "metric_depth": False,
-                                        "match_noise_px": _match_noise(kept)}, views, pairs)
+                                        "match_noise_px": match_noise_px(kept)}, views, pairs)
 
     def final(self, ds, frames) -> Predictions:
         """The batch frontend on ``frames``, as ``solve`` would run it (from the caches)."""
@@ -103,11 +103,3 @@ class IncrementalPairwise:
         if self.cache_dir is None:
             return self.predictions(ds, frames)
         return pairwise_predictions(subset_dataset(ds, frames), None, self.opt, self.cache_dir, progress=False)
-
-
-def _match_noise(kept) -> float:
-    """The batch frontend's match noise (pairwise_predictions: 1.5 x the median Sampson error, >= 0.5 px)."""
-    import numpy as np
-
-    noise = [g.stats["median_error_px"] for g in kept.values() if "median_error_px" in g.stats]
-    return float(max(0.5, 1.5 * np.median(noise))) if noise else 1.0
