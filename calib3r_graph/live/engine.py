@@ -46,7 +46,8 @@ from factors.match3d import DEPTH_CORRECTION_DIM
 from calib3r_graph.solver.init import initialise, pairwise_sim3
 from calib3r_graph.solver.jackknife import cover, factor_system, linearised_jackknife, wanted
 from calib3r_graph.solver.observations import build_observations
-from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions, _lm, robust_weights
+from calib3r_graph.solver.solve import (MIN_ROBOT_POSES, Solution, SolveOptions, levenberg_marquardt,
+                                        robust_weights)
 from calib3r_graph.solver.camera_model import add_camera_model
 from calib3r_graph.solver.systematic import systematic_errors
 from calib3r_graph.solver.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
@@ -378,7 +379,7 @@ class _Context:
 
     def lm(self, values, weights, calib, history):
         graph = self.graph(values, weights, calib)
-        values, iters, e0, e1 = _lm(graph, values, self.opt.max_iterations, "live", False)
+        values, iters, e0, e1 = levenberg_marquardt(graph, values, self.opt.max_iterations, "live", False)
         history.append({"round": len(history) + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
         return values

@@ -79,7 +79,7 @@ class Solution:
     camera_model: dict = field(default_factory=dict)  # camera -> camera_model.CameraModelError
 
 
-def _lm(graph, values, max_iterations, label, progress=True):
+def levenberg_marquardt(graph, values, max_iterations, label, progress=True):
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(1e-6)
@@ -208,7 +208,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
                 gone, keys, values, views, cameras, observations, conf, weights, inliers)
         graph = build_graph(weights, noise)
         with gtsam_keys_named(keys):
-            values, iters, e0, e1 = _lm(graph, values, opt.max_iterations, label, opt.progress)
+            values, iters, e0, e1 = levenberg_marquardt(graph, values, opt.max_iterations, label, opt.progress)
         history.append({"round": rnd + 1, "iterations": iters, "initial_error": e0, "final_error": e1,
                         "matches_used": int(sum((w > 0).sum() for w in weights))})
         if rnd < opt.irls_rounds:
