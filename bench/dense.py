@@ -6,7 +6,9 @@ Per run: points (before the voxel grid and in dense.ply), coverage, time per vie
   from the nearest camera) and the share of the surface that two or more views see which the cloud covers.
 - Real recordings: the board's flatness on the dense cloud (RMS to a fitted plane), that plane's distance
   along its normal to the board plane of the pattern-ba reference (pattern-ba's ee_T_cam composed with
-  each view's PnP board pose, averaged), and the board's square size measured on the dense cloud (the
+  each view's PnP board pose, averaged), split into the two hand-eyes' difference along the normal and
+  the dense depth's own offset (to the board plane through our solved poses), beside the sigma of each
+  hand-eye along the normal; and the board's square size measured on the dense cloud (the
   detected corners' rays through the solved poses, intersected with the dense board plane) against the
   printed one; and the cross-view disagreement under ee_T_cam moved by 1, 2, 5 mm or turned by 0.1, 0.2,
   0.5 degrees about each ee axis.
@@ -118,6 +120,8 @@ def sim_measures(ds_dir: Path, res_dir: Path, state, voxel_m: float) -> dict:
 
 
 def board_measures(ds_dir: Path, res_dir: Path) -> dict:
+    import gtsam
+
     from calib3r_graph.dense.fuse import read_dense_ply
     from calib3r_graph.dense.views import read_result
     from calib3r_graph.evaluation import pattern
@@ -156,8 +160,29 @@ def board_measures(ds_dir: Path, res_dir: Path) -> dict:
     out.update({"flatness_rms_mm": float(np.sqrt(np.mean(resid ** 2)) * 1e3),
                 "plane_offset_to_pattern_ba_mm": float(c[2] * 1e3),
                 "plane_tilt_to_pattern_ba_deg": float(np.degrees(np.arccos(min(1.0, abs(n[2])))))})
-    # the square size on the dense cloud: corner rays through the solved poses, onto the dense plane
+    # What the hand-eye's own uncertainty allows along the normal: a translation error dt of ee_T_cam moves
+    # view i's surface by (ee_R_base_i n_base) . dt along the board normal, so the plane moves by m . dt with
+    # m the mean of those directions in the ee frame, and its sigma is sqrt(m^T C m) for ours, pattern-ba's
+    # and their sum (the goal's "combined sigma"). Beside it, the board plane through our own solved poses
+    # (each view's PnP board pose composed with its solved base_T_cam): the difference of the dense plane
+    # to that one is the dense depth's own offset, the rest is the two hand-eyes' difference.
     n_base = Tb.rotation().matrix().T @ n
+    m = np.mean([ds.base_T_ee[d.frame].rotation().matrix().T @ n_base for d in dets], axis=0)
+    cal = json.loads((res_dir / "calibration.json").read_text())["cameras"][cam_name]
+    R_ours = np.asarray(cal["T_ee_cam"], float)[:3, :3]
+    sig = {"ours": float(np.sqrt(m @ R_ours @ np.asarray(cal["covariance"], float)[3:, 3:] @ R_ours.T @ m) * 1e3)}
+    if cov and cam_name in cov:
+        R = X.rotation().matrix()
+        sig["pattern_ba"] = float(np.sqrt(m @ R @ np.asarray(cov[cam_name])[3:, 3:] @ R.T @ m) * 1e3)
+    sig["combined"] = float(np.hypot(sig["ours"], sig.get("pattern_ba", 0.0)))
+    out["plane_sigma_along_normal_mm"] = sig
+    own = read_result(res_dir).base_T_cam
+    through = [Tb.compose(gtsam.Pose3(own[view_id(cam_name, d.frame)])).compose(d.cam_T_board).transformFrom(
+        np.r_[(lo[:2] + hi[:2]) / 2, 0.0])[2] for d in dets if view_id(cam_name, d.frame) in own]
+    out["board_plane_through_solved_poses_mm"] = float(np.mean(through) * 1e3)
+    out["hand_eye_difference_along_normal_mm"] = float(
+        m @ (np.asarray(cal["T_ee_cam"], float)[:3, 3] - X.translation()) * 1e3)
+    # the square size on the dense cloud: corner rays through the solved poses, onto the dense plane
     c_base = base_T_board.transformFrom(c)
     result = read_result(res_dir)
     pairs, spacing = _adjacent_pairs(obj)
@@ -301,17 +326,23 @@ def table(rows: list) -> str:
                           f"({s['points_0.4-0.6m']} points); {100 * s['coverage_of_surface_seen_by_2_views']:.0f} % "
                           f"of the surface that two or more views see is within {s['coverage_radius_mm']:g} mm of "
                           "a dense point."]
-    lines += ["", "| recording | board points | flatness RMS | plane to pattern-ba (along normal) | tilt | "
-                  "square on dense / printed |", "|---|---|---|---|---|---|"]
+    lines += ["", "| recording | board points | flatness RMS | plane to pattern-ba (along normal) | of which hand-eyes "
+                  "/ dense depth | sigma along normal: ours / pattern-ba / combined | tilt | square on dense / printed |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         b = r.get("board")
         if not b:
             continue
         if "status" in b:
-            lines.append(f"| {r['name']} | {b['board_points']} | {b['status']} | | | |")
+            lines.append(f"| {r['name']} | {b['board_points']} | {b['status']} | | | | | |")
             continue
+        sg = b.get("plane_sigma_along_normal_mm", {})
+        own = (None if "board_plane_through_solved_poses_mm" not in b
+               else b["plane_offset_to_pattern_ba_mm"] - b["board_plane_through_solved_poses_mm"])
         lines.append(f"| {r['name']} | {b['board_points']} | {f(b['flatness_rms_mm'])} mm | "
-                     f"{f(b['plane_offset_to_pattern_ba_mm'])} mm | {f(b['plane_tilt_to_pattern_ba_deg'], '.3f')}° | "
+                     f"{f(b['plane_offset_to_pattern_ba_mm'])} mm | {f(b.get('hand_eye_difference_along_normal_mm'))} / "
+                     f"{f(own)} mm | {f(sg.get('ours'))} / {f(sg.get('pattern_ba'))} / {f(sg.get('combined'))} mm | "
+                     f"{f(b['plane_tilt_to_pattern_ba_deg'], '.3f')}° | "
                      f"{f(b['square_size_dense_mm'], '.3f')} / {b['square_size_printed_mm']:.3f} mm "
                      f"({b['square_size_error_percent']:+.2f} %) |")
     lines += ["", "Cross-view surface disagreement (median mm, worst of the three ee axes; p90 in dense.json) with "

@@ -6,16 +6,20 @@ simulated dataset (its own predictions), the recording is replayed through ``Liv
 
 * per step: the error of ee_T_cam to the full recording's batch ``solve`` (mm, deg), the largest
   total sigma (mm, deg), and whether the error is within 3 sigma on every ee axis (coverage);
-* the frames each order needs to come within 3 mm / 0.2 deg of the full result and stay there;
+* the frames each order needs to come within 3 mm / 0.2 deg of the full result and stay there
+  (median and range over the random order's ``--seeds``, and the ratio to the recorded order);
+* ``--orders ...,oracle``: a greedy order that knows the full result (:func:`oracle_order`, on the
+  full result's linearised graph), replayed through the real engine as a fixed order, with the
+  linearised model's own frames-to-3 mm for it and for the recorded order; ``--order-file`` replays
+  any fixed order;
 * the latency of each update (the solver's part; the frontend's feature extraction, pair geometry
   and aggregation and the guidance's scoring reported apart) and all updates against one batch solve;
 * the final live result against batch solve, in sigma per ee axis (the equivalence goal).
 
-``--jackknife`` also compares the linearised leave-one-pose-out jackknife (solver/jackknife.py) with
-the re-solving one on ``--jk-subsets`` seeded 10-pose subsets of each recording and on the sample.
+The linearised and re-solving jackknives are compared by ``bench/jackknife.py``.
 
     .venv/bin/python bench/live_real.py [--recordings rwhe_kuka_1,rwhe_kuka_2,tabb_ds1,sim] [--seeds 20]
-        [--jackknife] [--work DIR] [--cache DIR] [--out bench/results]
+        [--work DIR] [--cache DIR] [--out bench/results]
 
 Writes ``OUT/live_real.json``, ``OUT/live_real.md`` and ``OUT/live_real_<recording>.png``.
 """
@@ -37,8 +41,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from calib3r_graph.geometry import pose_error  # noqa: E402
-from calib3r_graph.io.dataset import load_dataset, subset_dataset  # noqa: E402
-from calib3r_graph.io.predictions import load_predictions, subset_predictions  # noqa: E402
+from calib3r_graph.io.dataset import load_dataset  # noqa: E402
+from calib3r_graph.io.predictions import load_predictions  # noqa: E402
 from calib3r_graph.io.results import covariance_in_ee_frame  # noqa: E402
 from calib3r_graph.live.run import replay  # noqa: E402
 from calib3r_graph.live.session import LiveSession  # noqa: E402
@@ -79,7 +83,8 @@ def prepare(name, work: Path, cache: Path):
     return ds_dir, pname, preds, ref, time.perf_counter() - t
 
 
-def run_order(ds_dir, pname, cache, ref, order, seed):
+def run_order(ds_dir, pname, cache, ref, order, seed, fixed=None):
+    """One replay; ``fixed``: the frame order of a fixed order ("oracle", "file")."""
     session = LiveSession(ds_dir, predictions=pname, cache_dir=cache, guide=False, seed=seed)
     steps = []
 
@@ -102,7 +107,7 @@ def run_order(ds_dir, pname, cache, ref, order, seed):
         steps.append(row)
 
     t = time.perf_counter()
-    ups = replay(session, order, seed, on_update=record)
+    ups = replay(session, fixed if fixed is not None else order, seed, on_update=record)
     wall = time.perf_counter() - t
     final = {}
     if session.sol is not None:
@@ -113,6 +118,127 @@ def run_order(ds_dir, pname, cache, ref, order, seed):
             final[c] = z.tolist()
     return {"order": order, "seed": seed, "steps": steps, "wall_s": wall, "final_z": final,
             "frames_order": list(session.base_T_ee)}  # arrival order
+
+
+class LinearModel:
+    """The full result's linearised graph (solver/jackknife.factor_system about the full solution):
+    the estimate from a subset of frames is ``full + dx``, ``dx = H_S^-1 sum_S A^T b`` over the
+    factors whose views all belong to the subset (the scale gauge kept on the views left), a view
+    or variable that no kept factor touches left out. Cheap enough for a greedy oracle that tries
+    every unused frame at every step (the sums grow by the new frame's factors only)."""
+
+    def __init__(self, ref):
+        from calib3r_graph.io.predictions import split_view_id
+
+        self.H, self.offsets, factors = jk.factor_system(ref.graph, ref.values)
+        keys = ref.keys
+        self.he = {c: self.offsets[keys.hand_eye(c)][0] for c in ref.ee_T_cam}
+        frame_of = {}
+        for v in ref.base_T_cam:
+            for k in (keys.pose(v), keys.scale(v), keys.correction(v)):
+                frame_of[k] = split_view_id(v)[1]
+        gauge_keys = {keys.metric(c) for c in ref.ee_T_cam}
+        self.gauge_cols = [self.offsets[k][0] for k in gauge_keys]
+        self.factors, self.gauge = [], []  # (frames it needs, columns, A^T A, A^T b); gauge: + each column's frame
+        for ks, idx, AtA, Atb, _ in factors:
+            if set(ks) & gauge_keys:
+                self.gauge.append((idx, AtA, Atb, [frame_of.get(k) for k in ks for _ in range(self.offsets[k][1])]))
+            else:
+                self.factors.append((frozenset(frame_of[k] for k in ks if k in frame_of), idx, AtA, Atb))
+
+    def state(self, frames: set, base=None, new=None):
+        """(H, b, touched) summed over the non-gauge factors of ``frames``; with ``base`` (the state of
+        ``frames - {new}``) only the factors that need ``new`` are added to it."""
+        n = len(self.H)
+        H, b, touched = (np.zeros((n, n)), np.zeros(n), np.zeros(n, bool)) if base is None else \
+            (base[0].copy(), base[1].copy(), base[2].copy())
+        for need, idx, AtA, Atb in self.factors:
+            if need <= frames and (new is None or new in need):
+                H[np.ix_(idx, idx)] += AtA
+                b[idx] += Atb
+                touched[idx] = True
+        return H, b, touched
+
+    def error(self, frames: set, state):
+        """{camera: (mm, deg)} of the subset's estimate to the full result, or None where the subset
+        does not determine it (singular, or a step past the linear range). ``state``: of ``frames``."""
+        H, b, touched = state[0].copy(), state[1].copy(), state[2].copy()
+        for idx, AtA, Atb, col_frames in self.gauge:
+            keep = np.array([f is None or f in frames for f in col_frames])
+            H[np.ix_(idx[keep], idx[keep])] += AtA[np.ix_(keep, keep)]
+            b[idx[keep]] += Atb[keep]
+        touched[self.gauge_cols] = True
+        keep = np.flatnonzero(touched)
+        try:
+            L = np.linalg.cholesky(H[np.ix_(keep, keep)])
+        except np.linalg.LinAlgError:
+            return None
+        dx = np.zeros(len(H))
+        dx[keep] = np.linalg.solve(L.T, np.linalg.solve(L, b[keep]))
+        out = {}
+        for c, a in self.he.items():
+            w, v = dx[a:a + 3], dx[a + 3:a + 6]
+            if not touched[a] or np.linalg.norm(w) > jk.MAX_STEP[0] or np.linalg.norm(v) > jk.MAX_STEP[1]:
+                return None
+            out[c] = (1e3 * float(np.linalg.norm(v)), float(np.degrees(np.linalg.norm(w))))
+        return out
+
+
+def near_score(err) -> float:
+    """max over cameras of max(mm / 3, deg / 0.2): 1 or less is within 3 mm / 0.2 deg."""
+    return float("inf") if err is None else max(max(mm / NEAR_MM, deg / NEAR_DEG) for mm, deg in err.values())
+
+
+def oracle_order(ref, base_T_ee: dict, progress=True) -> tuple[list, list]:
+    """(order, [near_score after each frame]): greedy, knowing the full result: at each step the
+    unused frame whose addition brings the linearised estimate (:class:`LinearModel`) closest to the
+    full result, in :func:`near_score`. Until the first subset that determines the hand-eye, the
+    frame whose flange rotation differs most from those used (as the guided replay starts). Only
+    frames the full result used are ordered (the others, e.g. left out as not co-visible, follow)."""
+    from tqdm import tqdm
+
+    from calib3r_graph.io.predictions import split_view_id
+
+    model = LinearModel(ref)
+    solved = {split_view_id(v)[1] for v in ref.base_T_cam}
+    frames = [f for f in base_T_ee if f in solved]
+    order, scores = [frames[0]], [float("inf")]
+    cur = model.state(set(order))
+    rest = frames[1:]
+    bar = tqdm(total=len(rest), desc="oracle", disable=not progress, leave=False)
+    while rest:
+        tries = {g: near_score(model.error(set(order) | {g}, model.state(set(order) | {g}, cur, g))) for g in rest}
+        best = min(rest, key=lambda g: tries[g])
+        if not np.isfinite(tries[best]):
+            R = [base_T_ee[f].rotation() for f in order]
+            best = max(rest, key=lambda g: min(np.linalg.norm(gtsam.Rot3.Logmap(r.between(base_T_ee[g].rotation())))
+                                               for r in R))
+        order.append(best)
+        scores.append(tries[best])
+        cur = model.state(set(order), cur, best)
+        rest.remove(best)
+        bar.update()
+    bar.close()
+    return order + [f for f in base_T_ee if f not in solved], scores
+
+
+def linear_scores(ref, order: list) -> list:
+    """:func:`near_score` of the linearised estimate after each frame of ``order``."""
+    model = LinearModel(ref)
+    cur, used, out = None, set(), []
+    for f in order:
+        used.add(f)
+        cur = model.state(used, cur, f if cur is not None else None)
+        out.append(near_score(model.error(used, cur)))
+    return out
+
+
+def linear_frames_to_near(scores, counts) -> int | None:
+    """Fewest frames after which every later linearised score is within 3 mm / 0.2 deg."""
+    for i in range(len(scores)):
+        if all(s <= 1 for s in scores[i:]):
+            return counts[i]
+    return None
 
 
 def frames_to_stay_near(steps) -> int | None:
@@ -127,7 +253,7 @@ def frames_to_stay_near(steps) -> int | None:
 
 def summarise(runs, batch_s):
     out = {}
-    for order in ("recorded", "guided", "random"):
+    for order in ("recorded", "guided", "random", "oracle", "file"):
         rs = [r for r in runs if r["order"] == order]
         if not rs:
             continue
@@ -137,50 +263,16 @@ def summarise(runs, batch_s):
         total = [sum(s["latency_s"] for s in r["steps"]) for r in rs]
         front = [sum(sum(s["frontend_s"].values()) for s in r["steps"]) for r in rs]
         z = [max(abs(v) for c in r["final_z"].values() for v in c) for r in rs if r["final_z"]]
+        got = [n for n in need if n is not None]
         out[order] = {"runs": len(rs), "frames_to_3mm_0.2deg": need,
-                      "frames_median": float(np.median([n for n in need if n is not None])) if any(
-                          n is not None for n in need) else None,
+                      "frames_median": float(np.median(got)) if got else None,
+                      "frames_range": [min(got), max(got)] if got else None, "never_near": len(need) - len(got),
                       "coverage_3sigma": float(np.mean(cov)) if cov else None,
                       "latency_median_s": float(np.median(lat)) if lat else None,
                       "latency_at_max_frames_s": float(np.median([r["steps"][-2]["latency_s"] for r in rs])),
                       "updates_total_s": float(np.median(total)), "frontend_total_s": float(np.median(front)),
                       "updates_over_batch": float(np.median(total) / batch_s), "final_max_abs_z": max(z) if z else None}
     return out
-
-
-def compare_jackknife(ds_dir, pname, preds, subsets, seed=0):
-    """Linearised vs re-solving jackknife sigmas and covers on seeded 10-pose subsets."""
-    from calib3r_graph.evaluation.compare import random_subsets
-
-    ds = load_dataset(ds_dir)
-    opt = SolveOptions(noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0))), progress=False)
-    rows = []
-    picks = [ds.frames] if len(ds.frames) < jk.JACKKNIFE_BELOW else random_subsets(ds, 10, subsets, seed)
-    for frames in picks:
-        sub, sp = subset_dataset(ds, frames), subset_predictions(preds, frames)
-        try:
-            sol = solve(sub, sp, SolveOptions(**{**opt.__dict__, "jackknife": "never"}))
-            t = time.perf_counter()
-            lin, _ = jk.linearised_jackknife(sol)
-            t_lin = time.perf_counter() - t
-            jk.METHOD = "resolve"
-            t = time.perf_counter()
-            res, _ = jk.jackknife(sub, sp, opt, sol, solve, progress=False)
-            t_res = time.perf_counter() - t
-        except Exception as e:  # noqa: BLE001  a subset that does not solve is reported, not fatal
-            rows.append({"frames": list(frames), "error": f"{type(e).__name__}: {e}"})
-            continue
-        finally:
-            jk.METHOD = "linearised"
-        for c in lin:
-            if c not in res:
-                continue
-            a, b = lin[c]["sigma_jackknife"], res[c]["sigma_jackknife"]
-            ca = jk._sigmas(sol.ee_T_cam[c], jk.cover(np.asarray(sol.covariance[c]), np.asarray(lin[c]["covariance"])))
-            cb = jk._sigmas(sol.ee_T_cam[c], jk.cover(np.asarray(sol.covariance[c]), np.asarray(res[c]["covariance"])))
-            rows.append({"frames": list(frames), "camera": c, "time_linearised_s": t_lin, "time_resolve_s": t_res,
-                         "sigma_ratio": {k: a[k] / b[k] for k in a}, "cover_ratio": {k: ca[k] / cb[k] for k in ca}})
-    return rows
 
 
 def plot(name, runs, path):
@@ -190,7 +282,7 @@ def plot(name, runs, path):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    colours = {"recorded": "C0", "guided": "C3", "random": "C7"}
+    colours = {"recorded": "C0", "guided": "C3", "random": "C7", "oracle": "C2", "file": "C1"}
     for r in runs:
         xs = [s["frames"] for s in r["steps"][:-1] if "cameras" in s]
         if not xs:
@@ -216,9 +308,9 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recordings", default="rwhe_kuka_1,rwhe_kuka_2,tabb_ds1,sim")
     ap.add_argument("--seeds", type=int, default=20, help="random orders per recording")
-    ap.add_argument("--orders", default="recorded,guided,random")
-    ap.add_argument("--jackknife", action="store_true", help="also compare the two jackknives")
-    ap.add_argument("--jk-subsets", type=int, default=3)
+    ap.add_argument("--orders", default="recorded,guided,random",
+                    help="any of recorded, guided, random, oracle (greedy on the linearised full result)")
+    ap.add_argument("--order-file", help="also replay this fixed order: frame ids, whitespace separated")
     ap.add_argument("--work", default="/tmp/live_real")
     ap.add_argument("--cache", default="/tmp/live_real/cache")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results"))
@@ -226,6 +318,7 @@ def main():
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
     work, cache, out = Path(args.work), Path(args.cache), Path(args.out)
     work.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     result = {"command": " ".join(sys.argv), "recordings": {}}
     for name in args.recordings.split(","):
         if name != "sim" and not (SHARED / name).is_dir():
@@ -234,27 +327,35 @@ def main():
         t = time.perf_counter()
         ds_dir, pname, preds, ref, batch_s = prepare(name, work, cache)
         print(f"{name}: batch solve {batch_s:.1f} s (prepared in {time.perf_counter() - t:.0f} s)", flush=True)
-        runs = []
-        orders = (("recorded", [0]), ("guided", [0]), ("random", range(args.seeds)))
-        for order, seeds in [(o, s) for o, s in orders if o in args.orders.split(",")]:
+        runs, fixed, linear = [], {}, {}
+        wanted = args.orders.split(",")
+        base_T_ee = load_dataset(ds_dir).base_T_ee
+        if "oracle" in wanted:
+            t = time.perf_counter()
+            fixed["oracle"], _ = oracle_order(ref, base_T_ee, progress=False)
+            print(f"  oracle order ({time.perf_counter() - t:.0f} s): {' '.join(fixed['oracle'])}", flush=True)
+        if args.order_file:
+            fixed["file"] = [x.strip() for x in Path(args.order_file).read_text().split() if x.strip()]
+            wanted.append("file")
+        for o in ("recorded", *fixed):
+            order = list(base_T_ee) if o == "recorded" else fixed[o]
+            sc = linear_scores(ref, order)
+            linear[o] = linear_frames_to_near(sc, list(range(1, len(order) + 1)))
+            print(f"  {o}: the linearised model puts it within 3 mm / 0.2 deg after {linear[o]} frames", flush=True)
+        orders = (("recorded", [0]), ("guided", [0]), ("random", range(args.seeds)), ("oracle", [0]), ("file", [0]))
+        for order, seeds in [(o, s) for o, s in orders if o in wanted]:
             for seed in seeds:
-                r = run_order(ds_dir, pname, cache / name, ref, order, seed)
+                r = run_order(ds_dir, pname, cache / name, ref, order, seed, fixed.get(order))
                 runs.append(r)
                 print(f"  {order} {seed}: to 3 mm / 0.2 deg after {frames_to_stay_near(r['steps'])} frames, "
                       f"updates {sum(s['latency_s'] for s in r['steps']):.1f} s, final |z| "
                       f"{max((abs(v) for c in r['final_z'].values() for v in c), default=float('nan')):.3f}",
                       flush=True)
         rec = {"batch_solve_s": batch_s, "frames": len(load_dataset(ds_dir).frames), "summary": summarise(runs, batch_s),
-               "runs": runs}
-        if args.jackknife:
-            rec["jackknife"] = compare_jackknife(ds_dir, pname, preds, args.jk_subsets)
+               "runs": runs, "fixed_orders": fixed, "linearised_frames_to_3mm_0.2deg": linear}
         result["recordings"][name] = rec
         plot(name, runs, out / f"live_real_{name}.png")
         (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
-    if args.jackknife:
-        ds = load_dataset(ROOT / "datasets" / "sample")
-        sp = load_predictions(ds.root, "sim", ds.cameras, set(ds.frames))
-        result["sample_jackknife"] = compare_jackknife(ds.root, "sim", sp, 1)
     (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "live_real.md").write_text(table(result))
     print(table(result))
@@ -262,30 +363,23 @@ def main():
 
 def table(result) -> str:
     lines = [f"Command: `{result['command']}`", "",
-             "| recording | order | runs | frames to 3 mm / 0.2° (median) | 3σ coverage | median update (s) | "
-             "update at all frames (s) | all updates / batch solve | frontend total (s) | final max \\|z\\| vs batch |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| recording | order | runs | frames to 3 mm / 0.2° (median, range) | / recorded | 3σ coverage | "
+             "median update (s) | update at all frames (s) | all updates / batch solve | frontend total (s) | "
+             "final max \\|z\\| vs batch |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, rec in result["recordings"].items():
         for order, s in rec["summary"].items():
             fmt = lambda v, f: "–" if v is None else format(v, f)  # noqa: E731
+            rng = s.get("frames_range")
+            need = fmt(s["frames_median"], ".0f") + (f" ({rng[0]}–{rng[1]})" if rng and s["runs"] > 1 else "") + (
+                f", never: {s['never_near']}" if s.get("never_near") else "")
+            rec_n = rec["summary"].get("recorded", {}).get("frames_median")
+            ratio = fmt(s["frames_median"] / rec_n, ".2f") if rec_n and s["frames_median"] else "–"
             lines.append(f"| {name} ({rec['frames']} frames, batch {rec['batch_solve_s']:.1f} s) | {order} | {s['runs']} | "
-                         f"{fmt(s['frames_median'], '.0f')} | {fmt(s['coverage_3sigma'], '.0%')} | "
+                         f"{need} | {ratio} | {fmt(s['coverage_3sigma'], '.0%')} | "
                          f"{fmt(s['latency_median_s'], '.2f')} | {fmt(s['latency_at_max_frames_s'], '.2f')} | "
                          f"{fmt(s['updates_over_batch'], '.1f')}× | {fmt(s['frontend_total_s'], '.0f')} | "
                          f"{fmt(s['final_max_abs_z'], '.3f')} |")
-    jrows = [(n, r) for n, rec in result["recordings"].items() for r in rec.get("jackknife", [])]
-    jrows += [("sample", r) for r in result.get("sample_jackknife", [])]
-    if jrows:
-        lines += ["", "Linearised vs re-solving jackknife (ratio of per-axis sigmas; of the covers of the total):", "",
-                  "| data | poses | jackknife σ ratio min–max | cover ratio min–max | time linearised / re-solving (s) |",
-                  "|---|---|---|---|---|"]
-        for n, r in jrows:
-            if "error" in r:
-                lines.append(f"| {n} | {len(r['frames'])} | {r['error']} | | |")
-                continue
-            s, c = list(r["sigma_ratio"].values()), list(r["cover_ratio"].values())
-            lines.append(f"| {n} {r['camera']} | {len(r['frames'])} | {min(s):.2f}–{max(s):.2f} | {min(c):.2f}–{max(c):.2f} | "
-                         f"{r['time_linearised_s']:.1f} / {r['time_resolve_s']:.1f} |")
     return "\n".join(lines) + "\n"
 
 

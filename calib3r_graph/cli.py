@@ -95,8 +95,12 @@ def cmd_reconstruct(args):
     from calib3r_graph.dense.run import reconstruct_result, summary_lines
 
     figures = reconstruct_result(args.result, args.dataset, _dense_options(args))
+    if not args.no_report:  # the report rebuilt from the folder's files, with the dense cloud
+        from calib3r_graph.report import write_result_report
+
+        write_result_report(args.result, args.dataset)
     print(summary_lines(figures), end="")
-    print(f"  wrote {args.result}/dense.ply, mesh.ply, dense.json")
+    print(f"  wrote {args.result}/dense.ply, mesh.ply, dense.json" + ("" if args.no_report else ", report.html"))
 
 
 def _add_dense_args(p):
@@ -118,7 +122,8 @@ def cmd_simulate(args):
                      pattern=args.pattern, width=args.width, height=args.height, unit=args.unit,
                      depth_distortion=args.depth_distortion, outlier_fraction=args.outlier_fraction,
                      matches_per_pair=args.matches_per_pair, prediction_downsample=args.prediction_downsample,
-                     robot_noise_mm=args.robot_noise_mm, robot_noise_deg=args.robot_noise_deg)
+                     robot_noise_mm=args.robot_noise_mm, robot_noise_deg=args.robot_noise_deg,
+                     trajectory=args.trajectory)
     if not 1 <= opt.cameras <= 3:
         raise InputError("--cameras", "must be 1, 2 or 3")
     if opt.frames < 2:
@@ -154,6 +159,7 @@ def _solve_dataset(args):
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
                        irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
                        reprojection=args.reprojection, init=args.init, jackknife=args.jackknife,
+                       jackknife_method=getattr(args, "jackknife_method", None),
                        progress=not args.quiet)
     return ds, preds, opt, solve(ds, preds, opt)
 
@@ -380,6 +386,16 @@ def _add_live_args(p):
     p.add_argument("--resume", action="store_true", help="--watch: continue a killed session from OUT/live.jsonl")
     p.add_argument("--poll-s", type=float, default=1.0, help="--watch: seconds between looks at the folder")
     p.add_argument("--idle-s", type=float, default=None, help="--watch: end after this long without a new frame")
+    w = p.add_argument_group("--watch: robot poses from any pose file import files reads (default: the dataset's "
+                             "robot_poses.csv); frame id = the pose's number, 0007: images/<camera>/0007.png")
+    w.add_argument("--poses", help="a pose file (one pose per line or entry), or a folder or glob of one file per "
+                                   "frame (.txt, .csv, .npy, .json, .yaml)")
+    w.add_argument("--pose-format", help="as import files: matrix, xyz-quat-xyzw, xyz-quat-wxyz, xyz-rotvec, "
+                                         "xyz-euler:ORDER:deg|rad, visp (default with --pose-key: matrix)")
+    w.add_argument("--pose-key", help="the JSON/YAML entry that holds each pose, dots for nested keys")
+    w.add_argument("--unit", choices=["m", "mm"], help="the poses' translation unit (default: dataset.yaml's)")
+    w.add_argument("--direction", choices=["base_T_ee", "ee_T_base"], default="base_T_ee",
+                   help="what the poses are (default base_T_ee)")
     _add_noise_args(p)
     p.set_defaults(func=cmd_live)
 
@@ -490,6 +506,10 @@ def _add_solve_args(s):
                    help="leave-one-pose-out solves (n extra) whose spread the total covariance covers; "
                         "auto: below 15 robot poses, where the robot's error field cannot be measured "
                         "(default: auto)")
+    g.add_argument("--jackknife-method", choices=["resolve", "linearised"], default=None,
+                   help="resolve: n re-solves, robust re-weighting and noise calibration included; "
+                        "linearised: one downdate of the solved graph per pose (a fraction of a second, "
+                        "robust weights held; docs/uncertainty.md) (default: resolve)")
     g.add_argument("--reprojection", action="store_true",
                    help="add 2D reprojection factors (double-counts match noise; off by default)")
     g.add_argument("--intrinsics-sigma-px", metavar="F,C",
@@ -572,6 +592,8 @@ def build_parser():
     m.add_argument("--prediction-downsample", type=int, default=2, help="network grid = image / this")
     m.add_argument("--robot-noise-mm", type=float, default=0.2)
     m.add_argument("--robot-noise-deg", type=float, default=0.02)
+    m.add_argument("--trajectory", choices=["hemisphere", "orbit"], default="hemisphere",
+                   help="orbit: one distance, looking at the table's centre, like rwhe_kuka_2 (scale unobservable)")
     m.add_argument("--force", action="store_true", help="write into a non-empty folder")
     m.set_defaults(func=cmd_simulate)
     c = sub.add_parser("compare", help="run every calibration method on the same data, timed, with a table")
@@ -609,8 +631,10 @@ def build_parser():
 
     rc = sub.add_parser("reconstruct", help="dense cloud and mesh of a solve result, in the robot's base frame")
     rc.add_argument("result", help="folder written by solve (calibration.json, trajectory.csv); never modified "
-                                   "except for dense.ply, mesh.ply, dense.json and summary.txt's dense lines")
+                                   "except for dense.ply, mesh.ply, dense.json, summary.txt's dense lines and "
+                                   "report.html")
     rc.add_argument("dataset", help="the dataset folder that was solved")
+    rc.add_argument("--no-report", action="store_true", help="leave report.html as it is")
     _add_dense_args(rc)
     rc.set_defaults(func=cmd_reconstruct)
 

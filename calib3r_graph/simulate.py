@@ -45,6 +45,7 @@ class SimOptions:
     matches_per_pair: int = 2000
     neighbours: int = 4  # co-visibility: top-k neighbours per view
     unit: str = "m"
+    trajectory: str = "hemisphere"  # or "orbit" (orbit_trajectory: one distance, the scale unobservable)
 
 
 # Mounts of up to three cameras on the flange (ee_T_cam): different offsets and tilts,
@@ -176,6 +177,73 @@ def trajectory(rng, n: int, ee_T_cam0: gtsam.Pose3) -> list:
     return poses
 
 
+# rwhe_kuka_2's orbit (its RobotPosesVec.txt): the flange's viewing axis passes within 2 mm (median,
+# 7.5 mm at most) of one point, 0.396-0.421 m away, from directions a median 32 degrees apart.
+ORBIT_DISTANCE_M = 0.41
+ORBIT_DISTANCE_SPREAD = 0.03  # relative, peak to peak
+ORBIT_AIM_JITTER_M = 0.003
+ORBIT_SPREAD_DEG = 35.0  # the viewing directions' cone half-angle
+
+
+def orbit_trajectory(rng, n: int, ee_T_cam0: gtsam.Pose3, distance: float = ORBIT_DISTANCE_M) -> list:
+    """base_T_ee for n frames on an orbit like rwhe_kuka_2's: cam0 circles the table's centre at one
+    distance, looking at it, from directions within a cone about a view from the robot's side at 60
+    degrees elevation, with varied roll. On such an orbit every optical axis passes (nearly) through
+    one point, so the metric scale and ee_T_cam along the optical axis trade against each other."""
+    centre = np.r_[Scene.TABLE_CENTRE, 0.0]
+    el, az = np.radians(60.0), np.pi
+    mean = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    poses = []
+    for _ in range(n):
+        axis = np.cross(mean, rng.normal(size=3))
+        tilt = gtsam.Rot3.AxisAngle(gtsam.Unit3(axis).point3(), np.radians(ORBIT_SPREAD_DEG) * np.sqrt(rng.uniform()))
+        d = distance * (1 + ORBIT_DISTANCE_SPREAD * rng.uniform(-0.5, 0.5))
+        target = centre + rng.normal(size=3) * ORBIT_AIM_JITTER_M
+        eye = target + d * (tilt.matrix() @ mean)
+        poses.append(look_at(eye, target, rng.uniform(-35, 35)).compose(ee_T_cam0.inverse()))
+    return poses
+
+
+def look_at(eye, target, roll_deg: float) -> gtsam.Pose3:
+    """base_T_cam of a camera at ``eye`` whose z axis points at ``target``, its image's y axis towards
+    the base's -z, then rolled by ``roll_deg`` about its z."""
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    down = np.array([0.0, 0.0, -1.0])
+    y = down - (down @ z) * z
+    y /= np.linalg.norm(y)
+    R = np.stack([np.cross(y, z), y, z], axis=1)
+    return gtsam.Pose3(gtsam.Rot3(R).compose(gtsam.Rot3.Rz(np.deg2rad(roll_deg))), np.asarray(eye, float))
+
+
+def render_rgb(scene: Scene, cam: Camera, base_T_cam: gtsam.Pose3, rng):
+    """(HxWx3 uint8 RGB image with 1.5 grey levels of noise, z-depth in m (inf where nothing is hit))."""
+    depth, pts, normals, _ = scene.raycast(cam.K, base_T_cam, cam.width, cam.height)
+    rgb = scene.colour(pts, normals, base_T_cam)
+    rgb = np.clip(rgb * 255 + rng.normal(scale=1.5, size=rgb.shape), 0, 255).astype(np.uint8)
+    rgb[~np.isfinite(depth)] = 0
+    return rgb, depth
+
+
+def render_poses(dataset_dir, base_T_ee: dict, seed: int = 0) -> dict:
+    """{frame: {camera: HxWx3 uint8 RGB}}: the scene of a simulated dataset (its ground_truth.yaml)
+    seen by each of its cameras (their true mounts) from the given true flange poses (gtsam.Pose3 or
+    4x4), rendered as ``simulate`` renders its images. For a live session's proposed poses."""
+    from calib3r_graph.io.dataset import load_dataset, pose_from_dict
+
+    root = Path(dataset_dir)
+    gt = yaml.safe_load((root / "ground_truth.yaml").read_text())
+    scene = scene_from_simulation(gt["simulation"])
+    cams = load_dataset(root).cameras
+    rng = np.random.default_rng(seed)
+    out = {}
+    for f, E in base_T_ee.items():
+        E = E if isinstance(E, gtsam.Pose3) else gtsam.Pose3(np.asarray(E, float))
+        out[f] = {c: render_rgb(scene, cam, E.compose(pose_from_dict(gt["hand_eye"][c])), rng)[0]
+                  for c, cam in cams.items()}
+    return out
+
+
 def smooth_distortion(rng, h, w, amplitude) -> np.ndarray:
     """A smooth relative depth error field (h, w) with peak |value| = amplitude."""
     y, x = np.mgrid[0:h, 0:w]
@@ -260,7 +328,9 @@ def simulate(out_dir, opt: SimOptions, progress: bool = True) -> Path:
     scene = Scene(rng, pattern)  # first from the seed, so scene_from_simulation rebuilds it
     cams = [camera_for(j, opt) for j in range(opt.cameras)]
     mounts = [mount_pose(j, rng) for j in range(opt.cameras)]
-    true_ee = trajectory(rng, opt.frames, mounts[0])
+    if opt.trajectory not in ("hemisphere", "orbit"):
+        raise ValueError(f"trajectory must be hemisphere or orbit, not {opt.trajectory!r}")
+    true_ee = (orbit_trajectory if opt.trajectory == "orbit" else trajectory)(rng, opt.frames, mounts[0])
     frames = [f"{i:04d}" for i in range(opt.frames)]
     noise = lambda: np.r_[rng.normal(size=3) * np.deg2rad(opt.robot_noise_deg), rng.normal(size=3) * opt.robot_noise_mm * 1e-3]
     measured_ee = {f: E.compose(gtsam.Pose3.Expmap(noise())) for f, E in zip(frames, true_ee)}
@@ -274,10 +344,7 @@ def simulate(out_dir, opt: SimOptions, progress: bool = True) -> Path:
             cam, pose = cams[j], E.compose(mounts[j])
             vid = view_id(cam.name, f)
             if opt.images:
-                depth, pts, normals, _ = scene.raycast(cam.K, pose, cam.width, cam.height)
-                rgb = scene.colour(pts, normals, pose)
-                rgb = np.clip(rgb * 255 + rng.normal(scale=1.5, size=rgb.shape), 0, 255).astype(np.uint8)
-                rgb[~np.isfinite(depth)] = 0
+                rgb, depth = render_rgb(scene, cam, pose, rng)
                 _write_png(stage / "images" / cam.name / f"{f}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
                 depth_mm = np.where(np.isfinite(depth), np.round(depth * 1000), 0).clip(0, 65535).astype(np.uint16)
                 _write_png(stage / "depth" / cam.name / f"{f}.png", depth_mm)

@@ -4,6 +4,7 @@ flange offset; images and depth streaming throughout), written with rosbags' own
 ROS 1 .bag and as ROS 2 MCAP and sqlite3 bags. The import keeps exactly one image per rest,
 reproduces the original dataset bit for bit, and solves to the simulator's truth."""
 
+import json
 import shutil
 
 import cv2
@@ -15,7 +16,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from calib3r_graph.cli import main
 from calib3r_graph.errors import InputError
 from calib3r_graph.evaluation.evaluate import evaluate
-from calib3r_graph.io.dataset import load_dataset
+from calib3r_graph.io.dataset import load_dataset, load_ground_truth
 from calib3r_graph.io.rosbag import TfTree
 
 T0 = 1_700_000_000 * 10**9  # a realistic epoch, ns
@@ -198,6 +199,13 @@ def test_ros1_bag_imports_and_solves_to_the_truth(sims, tmp_path, capsys):
                  "--max-matches-per-pair", "300"]) == 0
     err = evaluate(tmp_path / "res", dst)["hand_eye"]["cam0"]
     assert err["e_t_m"] < 2e-3 and np.degrees(err["e_theta_rad"]) < 0.15, err
+    # The imported bag replays through live frame by frame, and its last update is solve's result.
+    assert main(["-q", "live", str(dst), "--replay", "recorded", "--out", str(tmp_path / "live")]) == 0
+    steps = [json.loads(line) for line in (tmp_path / "live" / "live.jsonl").read_text().splitlines()]
+    assert [s["frames"][-1] for s in steps[:8]] == load_dataset(dst).frames
+    T_live = np.array(json.loads((tmp_path / "live" / "calibration.json").read_text())["cameras"]["cam0"]["T_ee_cam"])
+    T_gt = load_ground_truth(dst)["hand_eye"]["cam0"].matrix()
+    assert np.linalg.norm(T_live[:3, 3] - T_gt[:3, 3]) < 2e-3
 
 
 @pytest.mark.slow

@@ -36,14 +36,17 @@ def normals(points: np.ndarray) -> np.ndarray:
     return n
 
 
-def disagreement(depths: dict, rays: dict, views: dict, neighbours: dict, poses: dict | None = None) -> dict:
+def disagreement(depths: dict, rays: dict, views: dict, neighbours: dict, poses: dict | None = None,
+                 per_pair: bool = False) -> dict:
     """Median and p90 (mm) of the cross-view surface distance, with ``poses`` {view: 4x4 base_T_cam}
-    (default: each view's chain pose). ``depths``: view -> (h, w) depth (NaN where none)."""
+    (default: each view's chain pose). ``depths``: view -> (h, w) depth (NaN where none). ``per_pair``:
+    also "pair_median_mm" {(a, b): median mm of that pair's samples}."""
     poses = poses or {v: dv.chain_T_cam for v, dv in views.items()}
     pts = {v: camera_points(depths[v], rays[v]) for v in depths}
     nrm = {v: normals(p) for v, p in pts.items()}
     samples = []
     pairs = 0
+    by_pair = {}
     for a, nbrs in neighbours.items():
         if a not in depths:
             continue
@@ -66,12 +69,14 @@ def disagreement(depths: dict, rays: dict, views: dict, neighbours: dict, poses:
             if good.sum() < 50:
                 continue
             samples.append(np.abs(np.sum((qa[good] - pb[good]) * nb[good], 1)))
+            by_pair[(a, b)] = float(np.median(samples[-1])) * 1e3
             pairs += 1
+    extra = {"pair_median_mm": by_pair} if per_pair else {}
     if not samples:
-        return {"median_mm": None, "p90_mm": None, "samples": 0, "pairs": 0}
+        return {"median_mm": None, "p90_mm": None, "samples": 0, "pairs": 0, **extra}
     d = np.concatenate(samples) * 1e3
     return {"median_mm": float(np.median(d)), "p90_mm": float(np.percentile(d, 90)), "samples": int(len(d)),
-            "pairs": pairs}
+            "pairs": pairs, **extra}
 
 
 def perturbed(ee_T_cam: np.ndarray, axis: int, translation_mm: float = 0.0, rotation_deg: float = 0.0) -> np.ndarray:

@@ -498,8 +498,10 @@ def _robot_checks(geoms: dict, base_T_ee: dict, opt: PairwiseOptions, info: dict
         cand = list(itertools.combinations(range(len(alphas)), 2))
         if len(cand) > 300:
             cand = [cand[i] for i in rng.choice(len(cand), 300, replace=False)]
-        for i, j in cand:
-            if np.linalg.norm(np.cross(na[i], na[j])) < np.sin(np.radians(10)):
+        I, J = np.array(cand).T
+        apart = np.linalg.norm(np.cross(na[I], na[J]), axis=1) >= np.sin(np.radians(10))  # one call, not per pair
+        for i, j, ok in zip(I, J, apart):
+            if not ok:
                 continue  # parallel axes do not fix a rotation
             R_X, _ = hand_eye_rotation(alphas[[i, j]], betas[[i, j]])
             err = np.degrees(np.linalg.norm(alphas - betas @ R_X.T, axis=1))
@@ -721,15 +723,29 @@ def _weighted_median_columns(x, w):
     return xs[k, np.arange(x.shape[1])]
 
 
-def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons: dict | None = None):
+def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons: dict | None = None,
+              cache: dict | None = None):
     """(views {vid: ViewPrediction}, pairs [PairMatches], info) from verified pair geometries.
     ``info["reasons"]`` says in one line why each of ``info["unusable"]`` is left out;
-    ``known_reasons`` are the views already explained (and warned about) by the caller."""
+    ``known_reasons`` are the views already explained (and warned about) by the caller.
+
+    ``cache`` (a dict the caller keeps, e.g. a live session adding frames): a view whose features and
+    pair geometries (the same objects, in the same order) are those of the last call is not
+    aggregated again, and a pair whose geometry and both views are unchanged keeps its matches;
+    the results are the same objects as before, so a caller can tell what changed by identity."""
     known_reasons = known_reasons or {}
+    cache = {} if cache is None else cache
     views, info = {}, {"views": {}, "unusable": [], "reasons": {}}
     for vid in sorted(feats):
         cam = ds.cameras[split_view_id(vid)[0]]
-        res = view_depths(vid, feats[vid], geoms, opt)
+        mine = [(ab, g) for ab, g in geoms.items() if vid in ab]
+        hit = cache.get(("view", vid))
+        if hit is not None and hit[0] is feats[vid] and len(hit[1]) == len(mine) and all(
+                ab == ab2 and g is g2 for (ab, g), (ab2, g2) in zip(hit[1], mine)):
+            res, done = hit[2], hit[3]
+        else:  # view_depths reads only the view's own pairs, in geoms' order
+            res, done = view_depths(vid, feats[vid], dict(mine), opt), None
+            cache[("view", vid)] = (feats[vid], mine, res, None)
         if res is None or len(res[0]) < opt.min_view_points:
             n = 0 if res is None else len(res[0])
             info["unusable"].append(vid)
@@ -741,13 +757,16 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
                                     f"motion, {n} triangulated points)")
             log.warning("view %s: %s; left out of the predictions, the others go on", vid, info["reasons"][vid])
             continue
+        if done is not None:
+            views[vid], info["views"][vid] = done
+            continue
         ids, depth_kp, conf_kp, scales = res
         # one feature per kp id: its (full-resolution) location
         first = np.full(int(feats[vid].kp_id.max()) + 1, -1)
         first[feats[vid].kp_id[::-1]] = np.arange(len(feats[vid].kp_id))[::-1]
         uv = feats[vid].uv[first[ids]]
         depth = np.zeros((cam.height, cam.width), np.float32)
-        conf = np.zeros_like(depth)
+        conf = np.zeros((cam.height, cam.width), np.float32)  # zeros, not zeros_like: untouched pages stay unwritten
         x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         ok = (x0 >= 0) & (y0 >= 0) & (x0 < cam.width - 1) & (y0 < cam.height - 1)
         order = np.argsort(conf_kp[ok])  # where splats overlap, the most confident one wins
@@ -757,6 +776,7 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
                 conf[y0[ok][order] + dy, x0[ok][order] + dx] = conf_kp[ok][order]
         views[vid] = ViewPrediction(depth, conf, cam.K)
         info["views"][vid] = {"points": int(ok.sum()), "pairs": len(scales)}
+        cache[("view", vid)] = cache[("view", vid)][:3] + ((views[vid], info["views"][vid]),)
     # Matches: every verified pair's, where the depths written at both ends agree with the pair's
     # own triangulation up to one scale per end (a match along a repeated texture's epipolar
     # line, or a splat a neighbouring keypoint overwrote, does not); scored by how many do.
@@ -764,6 +784,12 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
     for (a, b), g in geoms.items():
         if a not in views or b not in views:
             continue
+        hit = cache.get(("pair", a, b))
+        if hit is not None and hit[0] is g and hit[1] is views[a] and hit[2] is views[b]:
+            if hit[3] is not None:
+                cand[(a, b)], scores[(a, b)] = hit[3], len(hit[3].conf)
+            continue
+        cache[("pair", a, b)] = (g, views[a], views[b], None)
         uv_a, uv_b = feats[a].uv[g.ia], feats[b].uv[g.ib]
         d_a, ok_a = sample_bilinear(views[a].depth, uv_a)
         d_b, ok_b = sample_bilinear(views[b].depth, uv_b)
@@ -778,9 +804,16 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
         if keep.sum() >= 20:
             cand[(a, b)] = PairMatches(a, b, uv_a[keep], uv_b[keep], g.conf[keep])
             scores[(a, b)] = int(keep.sum())
+            cache[("pair", a, b)] = (g, views[a], views[b], cand[(a, b)])
     edges = covisibility_edges(scores, sorted(views), opt.neighbours)
-    pairs = [cand[e] if e in cand else PairMatches(e[0], e[1], cand[e[::-1]].uv_b, cand[e[::-1]].uv_a,
-                                                   cand[e[::-1]].conf) for e in edges]
+
+    def flipped(e):
+        c, hit = cand[e[::-1]], cache.get(("flipped", *e))
+        if hit is None or hit[0] is not c:
+            hit = cache[("flipped", *e)] = (c, PairMatches(e[0], e[1], c.uv_b, c.uv_a, c.conf))
+        return hit[1]
+
+    pairs = [cand[e] if e in cand else flipped(e) for e in edges]
     for vid in sorted(views):
         if not any(vid in (p.view_a, p.view_b) for p in pairs):
             info["unusable"].append(vid)

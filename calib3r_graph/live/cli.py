@@ -29,7 +29,14 @@ def run_live(args, noise_from_args):
         raise InputError(out / "live.jsonl", "exists: use another --out (or --watch --resume to continue it)")
     if args.resume and not args.watch:
         raise InputError("--resume", "continues a --watch session; a replay starts from its first frame")
+    if (args.poses or args.pose_format or args.pose_key) and not args.watch:
+        raise InputError("--poses", "is for --watch; a replay reads the dataset's own robot poses")
     ds = session_dataset(args.dataset)
+    poses = None
+    if args.poses:  # checked before anything is written
+        from calib3r_graph.live.poses import PoseFiles
+
+        poses = PoseFiles(args.poses, args.pose_format, args.pose_key, args.unit or ds.robot_unit, args.direction)
     name = args.predictions
     if name is None:
         found = available_predictions(ds.root)
@@ -56,7 +63,8 @@ def run_live(args, noise_from_args):
         last = ups[-1] if ups else None
     else:
         try:
-            last = watch(session, args.poll_s, on_update=show, max_idle_s=args.idle_s, resume=args.resume)
+            last = watch(session, args.poll_s, on_update=show, max_idle_s=args.idle_s, resume=args.resume,
+                         poses=poses)
         except KeyboardInterrupt:
             print(f"live: interrupted; {out} holds the state after the last update (--resume continues it)",
                   file=sys.stderr)

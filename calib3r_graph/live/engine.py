@@ -23,9 +23,16 @@ itself, one round per frame, at the cost of residuals only. :meth:`Engine.finish
 so the final result is ``solve``'s on the same frames and predictions (see its docstring for why
 not warm).
 
+Per pair, what depends only on unchanged inputs is kept from the last update (by identity of the
+inputs, so the numbers are those a rebuild gives): the observations of pairs whose matches and
+views' predictions did not change (:meth:`Engine._observations`), and the match residuals and
+nominal whitening of pairs whose views did not move (:meth:`_Context.terms`): the warm start of the
+old views is the last solution, so the IRLS weights at the warm start, the graph's whitening and
+the noise calibration reuse what the last update computed at its end.
+
 The covariance at every update comes from one linearisation (``jackknife.factor_system``): the
 noise model's marginal (the inverse of the information matrix), the systematic part
-(``systematic.py``) and, below ``JACKKNIFE_BELOW`` poses, the cover of the linearised
+(``systematic.py``, propagated through the same information matrix) and, below ``JACKKNIFE_BELOW`` poses, the cover of the linearised
 leave-one-pose-out jackknife.
 """
 
@@ -89,6 +96,9 @@ class Engine:
         self.depth_ref = {}  # view -> valid pixels of the depth map the state's depth scale refers to
         self._depth_of = {}  # view -> that depth map (unchanged maps are not compared again)
         self.last_noise, self.last_information = opt.noise, None
+        # per-pair caches, keyed by (view_a, view_b): what depends only on inputs that did not change
+        self._obs = {}  # -> (PairMatches, ViewPrediction a, ViewPrediction b, PairObservations or None)
+        self._terms = {}  # -> (PairObservations, view a's values, view b's, noise, residuals, whitening)
 
     # ------------------------------------------------------------------ one update
     def update(self, base_T_ee: dict, preds) -> Solution:
@@ -115,7 +125,7 @@ class Engine:
                              f"{MIN_ROBOT_POSES}")
         timings = {}
         t = time.perf_counter()
-        observations = build_observations(preds, self.opt.max_matches_per_pair, seed=self.opt.seed)
+        observations = self._observations(preds)
         if not observations:
             raise SolveError("no view pair has enough valid matches yet")
         timings["observations"] = time.perf_counter() - t
@@ -135,7 +145,7 @@ class Engine:
         keys = Keys(views, cameras)
         Ks = {v: preds.views[v].K for v in views}
         ctx = _Context(self.ds, base_T_ee, preds, observations, keys, Ks, views, cameras,
-                       self.opt)
+                       self.opt, self._terms)
         values = ctx.values(state)
         conf = [o.weight for o in observations]
         t = time.perf_counter()
@@ -148,9 +158,8 @@ class Engine:
             for rnd in range(self.opt.irls_rounds + 1):
                 values = ctx.lm(values, weights, calib, history)
                 if rnd < self.opt.irls_rounds:
-                    weights = robust_weights(observations, match_residuals(observations, values, keys),
-                                             ctx.nominal_whitening(values), conf)
-            calib = ctx.calibrate(values, weights) if self.opt.noise_calibration else Calibration()
+                    weights = robust_weights(observations, *ctx.terms(values), conf)
+            calib = ctx.calibrate(values, weights, *ctx.terms(values)) if self.opt.noise_calibration else Calibration()
             values = ctx.lm(values, weights, calib, history)
         system = None
         if not cold:
@@ -172,9 +181,16 @@ class Engine:
         timings["covariance"] = time.perf_counter() - t
         # carried to the next update: the noise calibration at this solution, with the robust weights
         # the next update's IRLS starts from (its own residuals at the warm start)
-        new_weights = robust_weights(observations, match_residuals(observations, values, keys),
-                                     ctx.nominal_whitening(values), conf)
-        next_calib = ctx.calibrate(values, new_weights) if self.opt.noise_calibration else Calibration()
+        # (the residuals and whitening at this solution are kept per pair: the next update's warm start
+        # of the pairs whose views did not move is this solution, so its warm_weights reuse them)
+        t = time.perf_counter()
+        res, W = ctx.terms(values)
+        new_weights = robust_weights(observations, res, W, conf)
+        next_calib = ctx.calibrate(values, new_weights, res, W) if self.opt.noise_calibration else Calibration()
+        live = {(o.view_a, o.view_b) for o in observations}
+        for k in [k for k in self._terms if k not in live]:
+            del self._terms[k]
+        timings["next_weights"] = time.perf_counter() - t
         self.state = State({v: sol.base_T_cam[v] for v in views}, dict(sol.depth_scale), dict(sol.depth_correction),
                            dict(sol.ee_T_cam), next_calib)
         self.depth_ref = {v: self.depth_ref[v] if self.depth_ref.get(v, (None, None, None))[2] is not None
@@ -182,6 +198,33 @@ class Engine:
                           for v in views}
         self._depth_of = {v: preds.views[v].depth for v in views}
         return sol
+
+    def _observations(self, preds) -> list:
+        """``build_observations`` of ``preds``, per pair from the cache where the pair's matches and both
+        views' predictions are the same objects as last time (a recording's never change; the pairwise
+        frontend hands back the same objects for the views whose aggregation did not change), so an
+        update builds only its new or re-aggregated pairs. The same arrays as the batch's where a pair
+        has at most ``max_matches_per_pair`` valid matches; above, the subsample is drawn from a
+        generator of its own build (the batch draws all pairs from one)."""
+        from calib3r_graph.io.predictions import Predictions
+
+        cache, new = {}, []
+        for p in preds.pairs:
+            key, va, vb = (p.view_a, p.view_b), preds.views[p.view_a], preds.views[p.view_b]
+            c = self._obs.get(key)
+            if c is not None and c[0] is p and c[1] is va and c[2] is vb:
+                cache[key] = c
+            else:
+                new.append(p)
+        if new:
+            built = {(o.view_a, o.view_b): o for o in build_observations(
+                Predictions(preds.name, preds.info, preds.views, new), self.opt.max_matches_per_pair,
+                seed=self.opt.seed)}
+            for p in new:
+                key = (p.view_a, p.view_b)
+                cache[key] = (p, preds.views[p.view_a], preds.views[p.view_b], built.get(key))
+        self._obs = cache
+        return [cache[(p.view_a, p.view_b)][3] for p in preds.pairs if cache[(p.view_a, p.view_b)][3] is not None]
 
     def finish(self, base_T_ee: dict, preds) -> Solution:
         """The last update is ``solve`` itself on the same frames and predictions, so the result is
@@ -217,7 +260,9 @@ class Engine:
             if v not in preds.views:
                 continue
             state.base_T_cam[v] = T
-            state.depth_scale[v] = old.depth_scale[v] * _unit_change(self.depth_ref.get(v), preds.views[v].depth)
+            same = preds.views[v].depth is self._depth_of.get(v)  # not re-aggregated: the same unit
+            state.depth_scale[v] = old.depth_scale[v] * (1.0 if same else _unit_change(self.depth_ref.get(v),
+                                                                                        preds.views[v].depth))
             state.correction[v] = old.correction.get(v)
         inliers = [None] * len(observations)
         # RANSAC only for the pairs with a view not placed yet; the others get IRLS weights from their
@@ -298,9 +343,40 @@ def _valid_depth(depth):
 class _Context:
     """What one update's graph is built from, and the steps of ``solve`` on it."""
 
-    def __init__(self, ds, base_T_ee, preds, observations, keys, Ks, views, cameras, opt):
+    def __init__(self, ds, base_T_ee, preds, observations, keys, Ks, views, cameras, opt, cache=None):
         self.ds, self.base_T_ee, self.preds, self.observations = ds, base_T_ee, preds, observations
         self.keys, self.Ks, self.views, self.cameras, self.opt = keys, Ks, views, cameras, opt
+        self.cache = {} if cache is None else cache
+
+    def terms(self, values, observations=None) -> tuple[list, list]:
+        """(match residuals, nominal whitening) per pair at ``values``, what ``robust_weights`` and the
+        noise calibration take. Both depend only on the pair's observations, its two views' pose, depth
+        scale and correction, and the noise options: a pair whose inputs are all equal to the cached
+        ones (the views were not moved since) reuses them."""
+        obs = self.observations if observations is None else observations
+        noise = (self.opt.noise.pixel_sigma_px, self.opt.noise.depth_sigma_rel)
+        sig = {}
+
+        def of(v):
+            if v not in sig:
+                sig[v] = (values.atPose3(self.keys.pose(v)).matrix().tobytes(), values.atDouble(self.keys.scale(v)),
+                          np.asarray(depth_correction(values, self.keys, v)).tobytes())
+            return sig[v]
+
+        res, W, todo = [None] * len(obs), [None] * len(obs), []
+        for i, o in enumerate(obs):
+            c = self.cache.get((o.view_a, o.view_b))
+            if c is not None and c[0] is o and c[1] == of(o.view_a) and c[2] == of(o.view_b) and c[3] == noise:
+                res[i], W[i] = c[4], c[5]
+            else:
+                todo.append(i)
+        if todo:
+            sub = [obs[i] for i in todo]
+            for i, r, w in zip(todo, match_residuals(sub, values, self.keys), self.nominal_whitening(values, sub)):
+                o = obs[i]
+                res[i], W[i] = r, w
+                self.cache[(o.view_a, o.view_b)] = (o, of(o.view_a), of(o.view_b), noise, r, w)
+        return res, W
 
     def values(self, state) -> gtsam.Values:
         keys, values = self.keys, gtsam.Values()
@@ -324,8 +400,7 @@ class _Context:
         out = [None if m is None else c * m for c, m in zip(conf, inliers)]
         if old:
             obs = [self.observations[i] for i in old]
-            res = match_residuals(obs, values, self.keys)
-            W = self.nominal_whitening(values, obs)
+            res, W = self.terms(values, obs)
             for i, w in zip(old, robust_weights(obs, res, W, [conf[i] for i in old])):
                 out[i] = w
         return out
@@ -340,7 +415,7 @@ class _Context:
         scale = 1.0 / (calib.sigma0_sq * calib.kappa)
         graph = gtsam.NonlinearFactorGraph()
         add_scene_factors(graph, keys, self.observations, [w * scale for w in weights], values, self.Ks, noise,
-                          self.opt.reprojection)
+                          self.opt.reprojection, whitening=self.terms(values)[1])
         add_robot_factors(graph, keys, self.views, self.base_T_ee,
                           {c: values.atPose3(keys.hand_eye(c)) for c in self.cameras}, noise)
         add_scale_gauge_factors(graph, keys, self.views, noise)
@@ -391,12 +466,11 @@ class _Context:
                                 values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)),
                                 self.opt.noise, np.ones(len(o))) for o in (observations or self.observations)]
 
-    def calibrate(self, values, weights) -> Calibration:
-        """solve's noise calibration at ``values`` with the robust ``weights``."""
-        residuals = match_residuals(self.observations, values, self.keys)
+    def calibrate(self, values, weights, residuals, whitening) -> Calibration:
+        """solve's noise calibration at ``values`` with the robust ``weights`` (``residuals`` and
+        ``whitening``: :meth:`terms` at ``values``)."""
         grid = {v: self.preds.views[v].depth.shape[::-1] for v in self.views}
-        sigma0_sq, kappa = noise_calibration(self.observations, residuals, self.nominal_whitening(values), weights,
-                                             grid)
+        sigma0_sq, kappa = noise_calibration(self.observations, residuals, whitening, weights, grid)
         chi2, n_frames = robot_chi2(self.keys, self.views, self.base_T_ee, values, self.opt.noise)
         robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
         if not np.isfinite(robot_factor):
@@ -420,7 +494,9 @@ class _Context:
             raise SolveError("the calibration is not observable from these frames yet (singular information)")
         robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), self.base_T_ee[split_view_id(v)[1]])
                  for v in robot_views(keys, views)]
-        systematic = systematic_errors(graph, values, robot, {c: (keys.hand_eye(c), keys.metric(c)) for c in cameras})
+        # on the same information matrix (the update's one linearisation) rather than a second one
+        systematic = systematic_errors(graph, values, robot, {c: (keys.hand_eye(c), keys.metric(c)) for c in cameras},
+                                       system=(H, offsets))
         covariance = {c: covariance_model[c] + systematic[c].covariance for c in cameras}
         metric = {}
         for c in cameras:

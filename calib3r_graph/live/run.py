@@ -9,20 +9,26 @@ from pathlib import Path
 import numpy as np
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.live.session import LiveSession, Update, read_pose_rows
+from calib3r_graph.live.session import LiveSession, Update
 
 log = logging.getLogger(__name__)
 
 
-def replay(session: LiveSession, order: str, seed: int = 0, on_update=None, stop_at_target=False) -> list:
-    """Replay the session's recording. ``order``: "recorded", "random" (seeded permutation) or
+def replay(session: LiveSession, order: str | list, seed: int = 0, on_update=None, stop_at_target=False) -> list:
+    """Replay the session's recording. ``order``: "recorded", "random" (seeded permutation),
     "guided": the next frame is the unused recorded frame that the guidance scores best (the
     recording's poses are the reachable set); before the first solve, the unused frame whose
-    flange rotation differs most from those used. Ends with :meth:`LiveSession.finish`."""
+    flange rotation differs most from those used; or a list of frame ids (a fixed order, e.g. an
+    oracle's; frames it leaves out are not used). Ends with :meth:`LiveSession.finish`."""
     from calib3r_graph.solver.plan import score_candidates
 
     frames = list(session.poses_known)
-    if order == "recorded":
+    if isinstance(order, (list, tuple)):
+        todo = [str(f) for f in order]
+        unknown = [f for f in todo if f not in session.poses_known]
+        if unknown or len(set(todo)) != len(todo) or not todo:
+            raise InputError("order", f"a fixed order must list recorded frames once each (unknown: {unknown[:3]})")
+    elif order == "recorded":
         todo = list(frames)
     elif order == "random":
         todo = list(np.random.default_rng(seed).permutation(frames))
@@ -83,18 +89,21 @@ def _most_different(session, used, rest):
 
 
 def watch(session: LiveSession, poll_s: float = 1.0, on_update=None, max_idle_s: float | None = None,
-          resume: bool = False) -> Update | None:
-    """Poll the dataset folder for frames: a row in the robot pose file and an image per camera.
-    Each complete frame is added once, in the file's order; a bad row is named and skipped. Ends at
-    the target (``done``) or when nothing new came for ``max_idle_s``; Ctrl-C ends it too, with
-    everything written after each update already in place."""
+          resume: bool = False, poses=None) -> Update | None:
+    """Poll the dataset folder for frames: a robot pose and an image per camera. ``poses``: where the
+    poses come from (``live/poses.py``: any pose file ``import files`` reads); by default the
+    dataset's robot pose file. Each complete frame is added once, in the poses' order; a pose that
+    cannot be used is named and skipped. Ends at the target (``done``) or when nothing new came for
+    ``max_idle_s``; Ctrl-C ends it too, with everything written after each update already in place."""
+    from calib3r_graph.live.poses import RobotPosesCsv
+
     ds = session.ds
-    poses_file = ds.root / ds.meta["robot"]["poses"]
+    poses = poses or RobotPosesCsv(ds.root / ds.meta["robot"]["poses"], ds.robot_unit)
     seen = set()
     if resume and session.out is not None and (session.out / "live.jsonl").is_file():
         lines = [json.loads(x) for x in (session.out / "live.jsonl").read_text().splitlines() if x.strip()]
         done_frames = lines[-1]["frames"] if lines else []
-        rows = {f: T for f, T, _ in read_pose_rows(poses_file, ds.robot_unit) if T is not None}
+        rows = {f: T for f, T, _ in poses.poll() if T is not None}
         session.step = lines[-1]["step"] if lines else 0
         up = session.resume_frames([(f, rows[f]) for f in done_frames if f in rows])
         if up is not None and on_update:
@@ -106,7 +115,7 @@ def watch(session: LiveSession, poll_s: float = 1.0, on_update=None, max_idle_s:
     up = session.last
     while True:
         got = False
-        for frame, T, reason in read_pose_rows(poses_file, ds.robot_unit):
+        for frame, T, reason in poses.poll():
             if frame in seen:
                 continue
             if T is None:

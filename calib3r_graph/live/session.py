@@ -343,7 +343,7 @@ class LiveSession:
             return up
         front = dict(self.source.seconds)
         t1 = time.perf_counter()
-        front["aggregation"] = t1 - tf
+        front["aggregation"] = t1 - tf - front.get("rescue", 0.0)  # robot-guided matching: pair geometry
         up = Update(self.step, frames, 0.0, front, skipped=skipped)
         if self.pixel_from_predictions and "match_noise_px" in preds.info:
             noise = dataclasses.replace(self.engine.opt.noise, pixel_sigma_px=float(preds.info["match_noise_px"]))

@@ -6,8 +6,10 @@
   arrive. Its public steps are called on what is new only: features of the new frame's images
   (``features_for``), two-view geometry of the new pairs (``pair_geometries``), both kept in memory
   (and on disk with ``cache_dir``); then the robot checks, the robot-guided rescue of weakly
-  connected views (a pair tried once is not tried again) and the per-view aggregation run on all
-  pairs so far, since a new pair can change an old view's depth. :meth:`final` is the batch frontend
+  connected views (a pair tried once is not tried again) run on all pairs so far; the per-view
+  aggregation re-aggregates only the views whose pairs changed (a new pair can change an old view's
+  depth; ``aggregate``'s cache keeps the others, as the same objects, so the engine rebuilds only
+  the observations of the pairs that changed). :meth:`final` is the batch frontend
   itself (``pairwise_predictions``, from the same caches), so the last update solves exactly the
   predictions ``solve`` would.
 """
@@ -49,6 +51,7 @@ class IncrementalPairwise:
         self.opt = opt or PairwiseOptions()
         self.cache_dir = cache_dir
         self.feats, self.geoms, self.rescued = {}, {}, {}
+        self.aggregated = {}  # aggregate()'s cache: views and pairs whose inputs did not change
         self.seconds = {}
 
     def _vids(self, ds, frames):
@@ -75,6 +78,7 @@ class IncrementalPairwise:
         from calib3r_graph.frontends.pairwise import aggregate, match_noise_px, rescue_pairs, robot_consistent
 
         t0 = time.perf_counter()
+        rescue_s = 0.0
         sub = subset_dataset(ds, frames)
         vids = self._vids(sub, sub.frames)
         feats = {v: self.feats[v] for v in vids if v in self.feats}
@@ -83,16 +87,20 @@ class IncrementalPairwise:
         kept, info = robot_consistent(verified, sub.base_T_ee, self.opt)
         if self.opt.rescue:
             todo = [ab for ab in candidates if ab not in self.rescued]
+            tr = time.perf_counter()
             got = rescue_pairs(sub, feats, todo, kept, info, self.opt, progress=False)
+            rescue_s = time.perf_counter() - tr
             for ab in todo:  # tried once (or not needed then): not tried again; views only gain pairs
                 self.rescued[ab] = got.get(ab)
             extra = {ab: self.rescued[ab] for ab in candidates if self.rescued.get(ab) is not None}
             if extra:
                 kept, info = robot_consistent({**verified, **extra}, sub.base_T_ee, self.opt)
-        views, pairs, _ = aggregate(sub, feats, kept, self.opt)
+        views, pairs, _ = aggregate(sub, feats, kept, self.opt, cache=self.aggregated)
+        # the robot-guided matching of the new pairs is pair geometry, not aggregation
+        self.seconds["rescue"] = rescue_s
+        self.seconds["aggregation"] = time.perf_counter() - t0 - rescue_s
         if not pairs:
             raise SolveError("pairwise: no two of the images so far share enough verified, triangulated matches")
-        self.seconds["aggregation"] = time.perf_counter() - t0
         return Predictions("pairwise", {"source": "calib3r-graph pairwise (live)", "metric_depth": False,
                                         "match_noise_px": match_noise_px(kept)}, views, pairs)
 

@@ -1,6 +1,11 @@
 """report.html of ``solve``: the calibration, its uncertainty and warnings, the 3D scene, the robot
-poses' residuals and the view pairs' residuals."""
+poses' residuals and the view pairs' residuals. ``solve`` builds it from its Solution in memory;
+``reconstruct`` rebuilds it from the result folder's files (:func:`write_result_report`) so that it
+shows the new dense cloud."""
 
+import json
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import gtsam
@@ -8,14 +13,22 @@ import numpy as np
 import plotly.graph_objects as go
 from plotly.subplots import make_subplots
 
+from calib3r_graph.errors import InputError
 from calib3r_graph.io.output import atomic_write_text
-from calib3r_graph.io.results import AXES, covariance_in_ee_frame, point_cloud
+from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.io.results import AXES, covariance_in_ee_frame, point_cloud, read_views
 from calib3r_graph.report.page import Page, esc, finite, fmt
 from calib3r_graph.report.residuals import CHI2_6_99, pair_statistics, robot_pose_residuals
 from calib3r_graph.report.scene import CAMERA_COLOURS, MAX_CLOUD_POINTS, cloud_arrays, dense_cloud_arrays, scene_figure
 
 SIGMA_KEYS = ["x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"]
 KIND_PATTERN = {"total": "", "model": "/", "jackknife": "x"}
+# Issue 23: report.html with the dense cloud stays under 10 MB; 0.2 MB below it for what a browser or
+# a mail gateway counts differently. plotly.js alone is 4.8 MB (plotly 7.1).
+MAX_PAGE_BYTES = 9_800_000
+# Bytes of the page per dense point, measured with plotly 7.1 on a 134669-point cloud: three float32
+# coordinates and a uint16 palette index in base64, with the '/' of base64 escaped in the HTML.
+DENSE_BYTES_PER_POINT = 21
 
 
 def solve_report_writer(ds, preds, sol, noise=None):
@@ -39,13 +52,129 @@ def _cloud(ds, preds, sol, cloud):
 
 
 def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=None, dense=None) -> str:
+    """The page from the solve's Solution in memory (``solve``, ``solve --dense``)."""
+    grids = {v: (preds.views[v].K, preds.views[v].depth.shape[1], preds.views[v].depth.shape[0])
+             for v in sol.base_T_cam}
+    return _report_html(ds, preds.name, sol, calibration, summary, pair_statistics(sol, preds, noise), grids,
+                        _cloud(ds, preds, sol, cloud), dense, calibration.get("dense"))
+
+
+@dataclass
+class SavedSolve:
+    """What the page needs of a Solution, read back from a result folder: poses (gtsam.Pose3), the
+    solver's stats (calibration.json's "solver") and, from views.npz when present, each view's depth
+    scale and correction (for the sparse cloud when reconstruction.ply is absent)."""
+
+    base_T_cam: dict
+    ee_T_cam: dict
+    stats: dict
+    depth_scale: dict = field(default_factory=dict)
+    depth_correction: dict = field(default_factory=dict)
+
+
+def _saved_pairs(report_path: Path):
+    """The view pairs' rows of an earlier report.html (its report-data JSON), or None. They come from the
+    solve's factor graph (observations and values), which only exists while ``solve`` runs."""
+    if not report_path.is_file():
+        return None
+    m = re.search(r'<script type="application/json" id="report-data">(.*?)</script>', report_path.read_text(), re.S)
+    try:
+        return json.loads(m[1])["pairs"] if m else None
+    except (ValueError, KeyError, TypeError):
+        return None
+
+
+def result_report_html(result_dir, ds) -> str:
+    """The page rebuilt from a result folder's files (``reconstruct``): calibration.json, trajectory.csv,
+    views.npz, reconstruction.ply, dense.ply / dense.json and summary.txt, with the dataset's robot
+    poses and cameras; the view pairs' rows are carried over from the folder's earlier report.html."""
+    from calib3r_graph.dense.views import read_result
+
+    d = Path(result_dir)
+    saved = read_result(d)  # one-line errors for a folder without a solve
+    calibration = json.loads((d / "calibration.json").read_text())
+    sol = SavedSolve({v: gtsam.Pose3(T) for v, T in saved.base_T_cam.items()},
+                     {c: gtsam.Pose3(X) for c, X in saved.ee_T_cam.items()}, calibration.get("solver", {}))
+    if (d / "views.npz").is_file():  # the poses at full precision (trajectory.csv rounds them to 1 nm)
+        states = read_views(d / "views.npz")
+        sol.base_T_cam = {v: states.base_T_cam.get(v, T) for v, T in sol.base_T_cam.items()}
+        sol.depth_scale, sol.depth_correction = states.depth_scale, states.depth_correction
+    sol.base_T_cam = {v: T for v, T in sol.base_T_cam.items()
+                      if split_view_id(v)[0] in ds.cameras and split_view_id(v)[1] in ds.base_T_ee}
+    if not sol.base_T_cam:
+        raise InputError(d / "trajectory.csv", f"no solved view belongs to the dataset {ds.root}")
+    # the frustums: each camera's own K and image (the same frustum as on any scaled grid of it)
+    grids = {v: (ds.cameras[c].K, ds.cameras[c].width, ds.cameras[c].height)
+             for v in sol.base_T_cam for c in [split_view_id(v)[0]]}
+    summary_path, dense_json = d / "summary.txt", d / "dense.json"
+    summary = summary_path.read_text() if summary_path.is_file() else ""
+    figures = json.loads(dense_json.read_text()) if dense_json.is_file() else calibration.get("dense")
+    return _report_html(ds, calibration.get("predictions") or "?", sol, calibration, summary,
+                        _saved_pairs(d / "report.html"), grids, _saved_cloud(d, ds, sol, calibration),
+                        dense_cloud_arrays(d), figures)
+
+
+def _saved_cloud(d: Path, ds, sol: SavedSolve, calibration):
+    """reconstruction.ply, or (``solve --no-cloud``) the predictions' cloud through views.npz; None
+    when neither can be had."""
+    path = d / "reconstruction.ply"
+    if path.is_file():
+        import open3d as o3d
+
+        pcd = o3d.io.read_point_cloud(str(path))
+        return cloud_arrays(np.asarray(pcd.points), np.asarray(pcd.colors))
+    name = calibration.get("predictions")
+    if not name or not sol.depth_scale or not (ds.root / "predictions" / name).is_dir():
+        return None
+    from calib3r_graph.io.predictions import load_predictions
+
+    preds = load_predictions(ds.root, name, ds.cameras, set(ds.frames), skip_missing=True)
+    poses = {v: T for v, T in sol.base_T_cam.items() if v in preds.views and v in sol.depth_scale}
+    if not poses:
+        return None
+    return _cloud(ds, preds, SavedSolve(poses, sol.ee_T_cam, sol.stats, sol.depth_scale, sol.depth_correction),
+                  None)
+
+
+def write_result_report(result_dir, dataset_dir) -> Path:
+    """``reconstruct``: replaces RESULT_DIR/report.html (atomically) by :func:`result_report_html`."""
+    from calib3r_graph.io.dataset import load_dataset
+
+    path = Path(result_dir) / "report.html"
+    atomic_write_text(path, result_report_html(result_dir, load_dataset(dataset_dir, skip_missing=True)))
+    return path
+
+
+def _report_html(ds, predictions_name, sol, calibration, summary, pairs, grids, cloud, dense, dense_figures) -> str:
+    """``sol``: a Solution or a :class:`SavedSolve` (base_T_cam, ee_T_cam, stats); ``pairs``: rows of
+    :func:`pair_statistics`, None where unknown; ``cloud``: (xyz, colours) of the sparse cloud or None;
+    ``dense``: :func:`dense_cloud_arrays` or None; ``dense_figures``: dense.json's figures or None.
+
+    The page stays under MAX_PAGE_BYTES: where the rest of it (plotly.js, the sparse cloud, the pairs)
+    leaves too little room for the dense cloud, the dense cloud is decimated further and the page rebuilt."""
+    def build(dense_shown):
+        return _page_html(ds, predictions_name, sol, calibration, summary, pairs, grids, cloud, dense_shown,
+                          dense_figures)
+
+    html = build(dense)
+    size = len(html.encode())
+    while dense is not None and size > MAX_PAGE_BYTES and len(dense[0]) > 1000:
+        n = len(dense[0])
+        keep = max(1000, int(n - 1.05 * (size - MAX_PAGE_BYTES) / DENSE_BYTES_PER_POINT))
+        idx = np.sort(np.random.default_rng(0).choice(n, keep, replace=False))
+        dense = (dense[0][idx], None if dense[1] is None else (dense[1][0][idx], dense[1][1]))
+        html = build(dense)
+        size = len(html.encode())
+    return html
+
+
+def _page_html(ds, predictions_name, sol, calibration, summary, pairs, grids, cloud, dense, dense_figures) -> str:
     cams = calibration["cameras"]
     robot = robot_pose_residuals(sol, ds.base_T_ee)
-    pairs = pair_statistics(sol, preds, noise)
     st = sol.stats
     page = Page(f"calib3r-graph report: {ds.root.name}")
     page.add(f"<h1>calib3r-graph: {esc(ds.root.name)}</h1>")
-    page.p(f"{ds.root} — predictions '{preds.name}', {st['views_used']} views, {st['pairs_used']} pairs, "
+    page.p(f"{ds.root} — predictions '{predictions_name}', {st['views_used']} views, {st['pairs_used']} pairs, "
            f"{st['matches_used']} matches", cls="sub")
     for c, cal in cams.items():
         T = np.asarray(cal["T_ee_cam"])
@@ -56,16 +185,16 @@ def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=No
     _warnings(page, calibration, st, robot)
 
     page.h2("The scene in the robot's base frame", "scene")
-    xyz, colours = _cloud(ds, preds, sol, cloud)
-    grids = {v: (preds.views[v].K, preds.views[v].depth.shape[1], preds.views[v].depth.shape[0])
-             for v in sol.base_T_cam}
+    xyz, colours = cloud if cloud is not None else (None, None)
     pos_cov = {c: covariance_in_ee_frame(sol.ee_T_cam[c], np.asarray(cal["covariance"]))[3:, 3:]
-               for c, cal in cams.items()}
+               for c, cal in cams.items() if c in sol.ee_T_cam}
     page.add(page.figure(scene_figure(sol, ds.base_T_ee, grids, pos_cov, robot, xyz, colours, dense), "scene3d"))
     page.p("Drag to rotate, scroll to zoom, click a legend entry to hide it. Frustums show every view's "
            "base_T_cam; flange poses are the robot's base_T_ee, red where the robot factor is flagged; each "
            "camera's ee_T_cam is drawn at the first frame's flange, with its 3σ position ellipsoid scaled up "
            "by the factor in the legend. Axes: x red, y green, z blue.", cls="sub")
+    if dense is not None and dense_figures:
+        page.p(_dense_caption(dense_figures, len(dense[0]), xyz is not None), cls="sub")
 
     _calibration_section(page, cams, st)
     _robot_section(page, robot, st)
@@ -73,9 +202,18 @@ def solve_report_html(ds, preds, sol, calibration, summary, noise=None, cloud=No
     page.h2("Summary (as printed)")
     page.add(f"<pre>{esc(summary)}</pre>")
     page.data(finite({"dataset": str(ds.root), "robot_poses": robot, "pairs": pairs,
-                      "chi2_6_99": CHI2_6_99, "cloud_points": int(len(xyz)),
+                      "chi2_6_99": CHI2_6_99, "cloud_points": int(len(xyz)) if xyz is not None else 0,
                       "dense_points": int(len(dense[0])) if dense is not None else 0}))
     return page.html()
+
+
+def _dense_caption(f: dict, shown: int, has_sparse: bool) -> str:
+    d = f.get("disagreement", {})
+    dis = (f"; cross-view surface disagreement under base_T_ee·ee_T_cam: median {d['median_mm']:.2f} mm, 90 % "
+           f"{d['p90_mm']:.2f} mm" if d.get("median_mm") is not None else "")
+    return (f"Dense cloud ({f['source']}, {f['views_used']} views): dense.ply's {f['points']} points at "
+            f"{f['voxel_mm']:g} mm, {shown} shown{dis}."
+            + (" The sparse cloud (reconstruction.ply) is in the legend: click it to show it." if has_sparse else ""))
 
 
 def _warnings(page, calibration, st, robot):
@@ -182,6 +320,10 @@ def _robot_section(page, robot, st):
 
 def _pairs_section(page, pairs):
     page.h2("View pairs: matches, inliers, residuals", "pairs")
+    if pairs is None:
+        page.p("The view pairs' residuals come from the solve's factor graph and this result folder's "
+               "earlier report.html did not hold them: run solve again for them.")
+        return
     if not pairs:
         page.p("No view pairs.")
         return

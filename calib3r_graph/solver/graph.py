@@ -115,17 +115,23 @@ def inverse_cholesky_3x3(C: np.ndarray) -> np.ndarray:
     return W
 
 
-def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise, reprojection=False):
-    """One 3D match factor (and optionally one reprojection factor) per view pair."""
-    for o, w in zip(observations, weights):
+def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise, reprojection=False,
+                      whitening=None):
+    """One 3D match factor (and optionally one reprojection factor) per view pair. ``whitening``:
+    each pair's :func:`point_sqrt_info` at ``values_init`` with unit weights, if already computed
+    (the same numbers: each point's is its own)."""
+    for i, (o, w) in enumerate(zip(observations, weights)):
         keep = w > 0
         if keep.sum() < 3:
             continue
         o = o.subset(keep)
         w = w[keep]
-        T_a, T_b = values_init.atPose3(keys.pose(o.view_a)), values_init.atPose3(keys.pose(o.view_b))
-        s_a, s_b = values_init.atDouble(keys.scale(o.view_a)), values_init.atDouble(keys.scale(o.view_b))
-        W = point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b], T_a.between(T_b), s_b / s_a, noise, w)
+        if whitening is not None:
+            W = whitening[i][keep] * np.sqrt(w)[:, None, None]
+        else:
+            T_a, T_b = values_init.atPose3(keys.pose(o.view_a)), values_init.atPose3(keys.pose(o.view_b))
+            s_a, s_b = values_init.atDouble(keys.scale(o.view_a)), values_init.atDouble(keys.scale(o.view_b))
+            W = point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b], T_a.between(T_b), s_b / s_a, noise, w)
         k = [keys.pose(o.view_a), keys.pose(o.view_b), keys.scale(o.view_a), keys.scale(o.view_b)]
         if noise.depth_correction_sigma > 0:
             m = factors.Match3DMeasurement(o.pts_a, o.pts_b, W, o.basis_a, o.basis_b)

@@ -54,11 +54,17 @@ def _scene_points(sol, view):
     return np.concatenate(pts) * sol.depth_scale[view] if pts else np.zeros((0, 3))
 
 
-def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None):
+def scene_points_by_view(sol) -> dict:
+    """{view: :func:`_scene_points`} of the reference camera's views, computed once for many candidates."""
+    ref = list(sol.ee_T_cam)[0]
+    return {v: _scene_points(sol, v) for v in sol.base_T_cam if split_view_id(v)[0] == ref}
+
+
+def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None):
     """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
     overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
     with its robot pose factor, and a 3D match factor to the existing view that sees most of the
-    same scene (see the module's docstring)."""
+    same scene (see the module's docstring). ``points``: :func:`scene_points_by_view` of ``sol``."""
     from calib3r_graph.solver.observations import PairObservations
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)
@@ -74,7 +80,7 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
     for v in sol.base_T_cam:
         if split_view_id(v)[0] != ref_cam:
             continue
-        P = _scene_points(sol, v)
+        P = points[v] if points is not None else _scene_points(sol, v)
         if len(P) == 0:
             continue
         K, (h, w) = preds.views[v].K, preds.views[v].depth.shape
@@ -131,6 +137,16 @@ def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) ->
 ROTATION_STEPS_DEG = (20.0, 35.0)
 # A new distance must differ from the current one by 10 % or more to measure the scale.
 MIN_DISTANCE_CHANGE = 0.10
+# Toward / away distances for the metric scale, as fractions of the median distance seen so far:
+# one move of Delta measures the scale to about sigma_robot / Delta (0.2 mm over 20 % of 0.4 m:
+# 0.25 %), so they are tried even where every view so far was at one distance (an orbit, like
+# rwhe_kuka_2's): the distances seen so far are grown by DISTANCE_MARGIN of their median (see
+# distance_band). Anchored to the median, not to each view's distance, so that guided views do not
+# creep closer and closer: 20 % changes the image scale by 1.25x at most, which the frontends match
+# (measured on the simulated orbit, bench/live_scale.py: a view 30 % closer, at 0.7x the median
+# depth, found no verified pair).
+DISTANCE_STEPS = (0.10, 0.20)
+DISTANCE_MARGIN = max(DISTANCE_STEPS)
 ORIENTATION_MARGIN_DEG = 15.0  # the visited orientations, grown by this, bound the candidates'
 
 
@@ -175,6 +191,14 @@ def objective(covs: dict, ee_T_cam: dict, scale_rel: dict, distance_m: float, ta
     return out
 
 
+def distance_band(dist) -> tuple[float, float]:
+    """(nearest, farthest) camera-to-centroid distance (m) a proposal may have: the distances seen
+    so far (``dist``), grown by DISTANCE_MARGIN of their median."""
+    d_med = float(np.median(dist))
+    return (min(float(np.min(dist)), d_med * (1 - DISTANCE_MARGIN)),
+            max(float(np.max(dist)), d_med * (1 + DISTANCE_MARGIN)))
+
+
 def _look_from(T: gtsam.Pose3, centroid, axis, angle) -> gtsam.Pose3:
     """Camera pose T rotated by ``angle`` about ``axis`` (base frame) through ``centroid``."""
     R = gtsam.Rot3.AxisAngle(gtsam.Unit3(np.asarray(axis, float)).point3(), angle)
@@ -185,12 +209,14 @@ def _look_from(T: gtsam.Pose3, centroid, axis, angle) -> gtsam.Pose3:
 def candidate_poses(sol, base_T_ee: dict, margin_m=0.05, box=None, rng=None, n_random=16) -> list:
     """[(kind, base_T_ee)] inside the visited region (flange positions grown by ``margin_m``, or
     ``box`` = (lo, hi) in the base frame, m; orientations within the visited ones + 15 degrees),
-    the camera looking at the scene's centroid from the distances seen so far."""
+    the camera looking at the scene's centroid from the distances seen so far (grown as
+    :func:`distance_band` says, so that a move toward or away can measure the scale)."""
     rng = rng or np.random.default_rng(0)
     ref = list(sol.ee_T_cam)[0]
     X = sol.ee_T_cam[ref]
     centroid, dist = scene_geometry(sol)
-    d_lo, d_hi = float(dist.min()), float(dist.max())
+    d_lo, d_hi, d_med = float(dist.min()), float(dist.max()), float(np.median(dist))
+    sign_ok = lambda kind, target, d: (target < d) == (kind == "toward")  # noqa: E731
     frames = sorted(base_T_ee)
     p = np.array([base_T_ee[f].translation() for f in frames])
     lo, hi = (p.min(0) - margin_m, p.max(0) + margin_m) if box is None else (np.asarray(box[0]), np.asarray(box[1]))
@@ -214,8 +240,10 @@ def candidate_poses(sol, base_T_ee: dict, margin_m=0.05, box=None, rng=None, n_r
         T = sol.base_T_cam[v]
         c = T.translation()
         d = np.linalg.norm(c - centroid)
-        for kind, target in (("toward", d_lo), ("away", d_hi)):
-            if abs(target - d) > MIN_DISTANCE_CHANGE * d:
+        targets = [("toward", d_lo), ("away", d_hi)] + [(kind, d_med * (1 + sign * f)) for f in DISTANCE_STEPS
+                                                         for kind, sign in (("toward", -1), ("away", 1))]
+        for kind, target in targets:
+            if sign_ok(kind, target, d) and abs(target - d) >= MIN_DISTANCE_CHANGE * d - 1e-9:
                 out.append((kind, gtsam.Pose3(T.rotation(), centroid + (c - centroid) * target / d)))
         R_ee = T.compose(X.inverse()).rotation().matrix()
         for axis in [rot_weak, *perp]:
@@ -225,7 +253,7 @@ def candidate_poses(sol, base_T_ee: dict, margin_m=0.05, box=None, rng=None, n_r
     for _ in range(n_random):
         T = sol.base_T_cam[views[rng.integers(len(views))]]
         T = _look_from(T, centroid, rng.normal(size=3), np.radians(rng.uniform(10, 35)))
-        r = rng.uniform(d_lo, d_hi)
+        r = rng.uniform(*distance_band(dist))  # a rotation and a change of distance at once
         out.append(("look-at", gtsam.Pose3(T.rotation(), centroid + (T.translation() - centroid) * r
                                            / np.linalg.norm(T.translation() - centroid))))
     keep = []
@@ -234,25 +262,52 @@ def candidate_poses(sol, base_T_ee: dict, margin_m=0.05, box=None, rng=None, n_r
         inside = np.all(E.translation() >= lo) and np.all(E.translation() <= hi)
         if inside and np.linalg.norm(gtsam.Rot3.Logmap(R_mean.between(E.rotation()))) <= max_angle:
             keep.append((kind, E))
-    return keep
+    return _within_budget(keep, rng)
+
+
+# Candidates scored per update. Scoring costs about 17 ms a candidate (2000 scene points; 193 candidates
+# took 3.2 s at 16 frames) and the candidates grow with the views (15 per view), so at 30 frames the
+# guidance alone took 6-11 s on a loaded 2-core machine; 48, drawn evenly over the kinds, keep it under
+# a second and every kind (toward, away, rotate, look-at) in the running.
+MAX_CANDIDATES = 48
+
+
+def _within_budget(cands: list, rng) -> list:
+    """At most MAX_CANDIDATES of ``cands``: round-robin over the kinds, each kind in a random order."""
+    if len(cands) <= MAX_CANDIDATES:
+        return cands
+    by_kind = {}
+    for c in cands:
+        by_kind.setdefault(c[0], []).append(c)
+    queues = [[group[i] for i in rng.permutation(len(group))] for group in by_kind.values()]
+    out = []
+    while len(out) < MAX_CANDIDATES:
+        for q in queues:
+            if q and len(out) < MAX_CANDIDATES:
+                out.append(q.pop())
+    return out
 
 
 def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, target_mm: float, target_deg: float,
                      information=None, seed=0) -> list:
     """[Proposal] for candidates [(kind, base_T_ee, frame or None)], best first: the expected
-    objective (:func:`objective`) of the TOTAL covariance after each.
+    objective (:func:`objective`) of the TOTAL covariance after each, the metric scale included.
 
     * Noise model: the candidate's factors (:func:`candidate_factors`) added to the information
       matrix ``H`` of the current graph: their new variables eliminated (Schur complement), the
       rank-13 update ``D`` on (ee_T_cam, the overlapping view's pose and scale) gives the marginals
       by Woodbury, ``S' = S - S_:U D (I + S_UU D)^-1 S_U:``, with ``S = H^-1`` (no re-solve).
-    * Systematic part: it scales with the squared systematic-error gain of the motion
+    * Systematic part, first pass: it scales with the squared systematic-error gain of the motion
       (``uncertainty.systematic_error_gain``: mm of ee_T_cam per mm of systematic error, from the
-      rotational diversity), so the candidate's effect on the gain rescales it.
+      rotational diversity), so the candidate's effect on the gain rescales it. That gain knows
+      nothing of the scale: on an orbit the field's share of the scale (systematic.py: a field
+      gradient along the viewing axis looks exactly like a scale change) falls only with a move
+      toward or away from the scene. So the ``SHORTLIST`` best, and the best of each kind, are
+      scored again with the field propagated exactly through the graph with the candidate's factors
+      (``systematic.propagate`` on ``H + the candidate's information``, the measured tau).
     * The few-pose cover (jackknife): a leave-one-out spread shrinks as 1/n with one more pose.
-    ``information``: (H, offsets) of ``sol.graph`` at ``sol.values`` (computed when None).
+    ``information``: (H^-1, offsets) of ``sol.graph`` at ``sol.values`` (computed when None).
     """
-    from calib3r_graph.solver.jackknife import cover
     from calib3r_graph.solver.systematic import linear_system
     from calib3r_graph.solver.uncertainty import systematic_error_gain
 
@@ -267,36 +322,17 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     d_med = float(np.median(dist))
     frames = sorted(base_T_ee)
     gain_before = systematic_error_gain(base_T_ee, frames)[0]
-    n = len(frames)
-    jk = sol.stats.get("jackknife", {})
     rng = np.random.default_rng(seed)
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
-    proposals = []
+    points = scene_points_by_view(sol)
+    proposals, parts = [], []
     for kind, E, frame in candidates:
-        fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new)
+        fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points)
         S_out = S[np.ix_(out_idx, out_idx)]
+        M = None
         if best is not None:
-            g = gtsam.NonlinearFactorGraph()
-            for f in fs:
-                g.add(f)
-            gkeys = sorted(g.keyVector())  # a list: iterating gtsam's KeySet temporary is not safe
-            for k in gkeys:
-                if not vals.exists(k):
-                    _insert_like(vals, sol.values, k)
-            lin = g.linearize(vals)
-            old = [k for k in gkeys if k in offsets]
-            new = [k for k in gkeys if k not in offsets]
-            dims = {k: (offsets[k][1] if k in offsets else (6 if k == k_new[0] else 1)) for k in gkeys}
-            order = old + new
-            pos, col = {}, 0
-            for k in order:
-                pos[k] = (col, dims[k])
-                col += dims[k]
-            M = np.zeros((col, col))
-            for i in range(lin.size()):
-                f = lin.at(i)
-                idx = np.concatenate([np.arange(pos[k][0], pos[k][0] + pos[k][1]) for k in f.keys()])
-                M[np.ix_(idx, idx)] += f.augmentedInformation()[:len(idx), :len(idx)]
+            M, order, dims = _candidate_information(sol, fs, vals, offsets, k_new)
+            old = [k for k in order if k in offsets]
             m = sum(dims[k] for k in old)
             A, B, Cn = M[:m, :m], M[:m, m:], M[m:, m:]
             D = A - B @ np.linalg.solve(Cn + 1e-12 * np.eye(len(Cn)), B.T)
@@ -305,29 +341,119 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
             S_out = S_out - S_ou @ D @ np.linalg.solve(np.eye(len(U)) + S_uu @ D, S_ou.T)
         gain_after = systematic_error_gain({**base_T_ee, "_candidate": E}, frames + ["_candidate"])[0]
         factor = (gain_after / gain_before) ** 2 if np.isfinite(gain_before) and gain_before > 0 else 1.0
-        covs, scale_rel, sig = {}, {}, {}
-        col = 0
-        for c in cameras:
-            model = S_out[col:col + 6, col:col + 6]
-            var_l = S_out[col + 6, col + 6]
-            col += 7
-            total = model + sol.systematic[c].covariance * factor if c in sol.systematic else model
-            if c in jk:
-                total = cover(total, np.asarray(jk[c]["covariance"]) * n / (n + 1))
-            covs[c] = total
-            lam = sol.metric_scale[c][0]
-            sys_rel = sol.systematic[c].scale_sigma_rel * np.sqrt(factor) if c in sol.systematic else 0.0
-            scale_rel[c] = float(np.hypot(np.sqrt(max(var_l, 0)) / abs(lam), sys_rel))
-            from calib3r_graph.io.results import covariance_in_ee_frame, sigma_ee_frame
-
-            sig[c] = sigma_ee_frame(np.sqrt(np.maximum(np.diag(covariance_in_ee_frame(sol.ee_T_cam[c], total)), 0)))
-        J = objective(covs, sol.ee_T_cam, scale_rel, d_med, target_mm, target_deg)
+        sys_after = {c: (sol.systematic[c].covariance * factor, sol.systematic[c].scale_sigma_rel * np.sqrt(factor))
+                     for c in cameras if c in sol.systematic}
+        J, sig = _objective_after(sol, S_out, sys_after, len(frames), d_med, target_mm, target_deg)
         proposals.append(Proposal(E, kind, J, 0.0, sig, n_vis, frame))
+        parts.append((fs, vals, S_out, M is not None))
+    _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_med, target_mm, target_deg)
     J_now = objective(sol.covariance, sol.ee_T_cam, {c: sol.metric_scale[c][1] / abs(sol.metric_scale[c][0])
                                                      for c in cameras}, d_med, target_mm, target_deg)
     for p in proposals:
         p.gain = J_now - p.objective_after
     return sorted(proposals, key=lambda p: p.objective_after)
+
+
+SHORTLIST = 4  # candidates re-scored with the exact systematic part (besides the best of each kind)
+
+
+def _candidate_information(sol, fs, vals, offsets, k_new):
+    """(M, key order, dims): the candidate factors' information, linearised at the current values
+    (new variables at their predicted values), old keys first in ``offsets``' order, then the new."""
+    g = gtsam.NonlinearFactorGraph()
+    for f in fs:
+        g.add(f)
+    gkeys = sorted(g.keyVector())  # a list: iterating gtsam's KeySet temporary is not safe
+    for k in gkeys:
+        if not vals.exists(k):
+            _insert_like(vals, sol.values, k)
+    lin = g.linearize(vals)
+    old = [k for k in gkeys if k in offsets]
+    new = [k for k in gkeys if k not in offsets]
+    dims = {k: (offsets[k][1] if k in offsets else (6 if k == k_new[0] else 1)) for k in gkeys}
+    order = old + new
+    pos, col = {}, 0
+    for k in order:
+        pos[k] = (col, dims[k])
+        col += dims[k]
+    M = np.zeros((col, col))
+    for i in range(lin.size()):
+        f = lin.at(i)
+        idx = np.concatenate([np.arange(pos[k][0], pos[k][0] + pos[k][1]) for k in f.keys()])
+        M[np.ix_(idx, idx)] += f.augmentedInformation()[:len(idx), :len(idx)]
+    return M, order, dims
+
+
+def _objective_after(sol, S_out, sys_after: dict, n: int, d_med, target_mm, target_deg):
+    """(objective, {camera: sigma_ee_frame}) of the total after a candidate: the noise model's
+    (ee_T_cam, scale) marginal ``S_out`` (7 per camera), ``sys_after`` {camera: (6x6, scale rel)}
+    and the jackknife's cover shrunk as n / (n + 1)."""
+    from calib3r_graph.io.results import covariance_in_ee_frame, sigma_ee_frame
+    from calib3r_graph.solver.jackknife import cover
+
+    jk = sol.stats.get("jackknife", {})
+    covs, scale_rel, sig = {}, {}, {}
+    for i, c in enumerate(sol.ee_T_cam):
+        model, var_l = S_out[7 * i:7 * i + 6, 7 * i:7 * i + 6], S_out[7 * i + 6, 7 * i + 6]
+        sys_cov, sys_rel = sys_after.get(c, (np.zeros((6, 6)), 0.0))
+        total = model + sys_cov
+        if c in jk:
+            total = cover(total, np.asarray(jk[c]["covariance"]) * n / (n + 1))
+        covs[c] = total
+        scale_rel[c] = float(np.hypot(np.sqrt(max(var_l, 0)) / abs(sol.metric_scale[c][0]), sys_rel))
+        sig[c] = sigma_ee_frame(np.sqrt(np.maximum(np.diag(covariance_in_ee_frame(sol.ee_T_cam[c], total)), 0)))
+    return objective(covs, sol.ee_T_cam, scale_rel, d_med, target_mm, target_deg), sig
+
+
+def _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_med, target_mm, target_deg):
+    """Re-score the shortlist (see :func:`score_candidates`) in place with the systematic field
+    propagated through the graph extended by each candidate's factors."""
+    from calib3r_graph.solver.graph import robot_views
+    from calib3r_graph.solver.systematic import key_offsets, propagate
+
+    cameras = list(sol.ee_T_cam)
+    tau = next((sol.systematic[c].tau for c in cameras if c in sol.systematic), None)
+    if tau is None or not np.asarray(tau).sum() > 0:
+        return  # no field measured: nothing systematic to re-score
+    keys = sol.keys
+    order = sorted(range(len(proposals)), key=lambda i: proposals[i].objective_after)
+    pick = set(order[:SHORTLIST])
+    for kind in {p.kind for p in proposals}:
+        pick.add(next(i for i in order if proposals[i].kind == kind))
+    robot = [(keys.hand_eye(split_view_id(v)[0]), keys.pose(v), base_T_ee[split_view_id(v)[1]])
+             for v in robot_views(keys, list(sol.base_T_cam))]
+    H = None
+    out_keys = [k for c in cameras for k in (keys.hand_eye(c), keys.metric(c))]
+    for i in pick:
+        fs, vals, S_out, _ = parts[i]
+        graph, values = gtsam.NonlinearFactorGraph(sol.graph), gtsam.Values(sol.values)
+        for f in fs:
+            graph.add(f)
+        M, korder, dims = _candidate_information(sol, fs, vals, offsets, k_new)
+        for k in korder:
+            if k not in offsets:  # the candidate's own variables (vals holds the old ones it touches too)
+                _insert_like(values, vals, k)
+        if H is None:
+            H = np.linalg.inv(S)
+        aug = key_offsets(graph, values)
+        n_aug = sum(d for _, d in aug.values())
+        perm = np.concatenate([np.arange(aug[k][0], aug[k][0] + aug[k][1]) for k in offsets])
+        H_aug = np.zeros((n_aug, n_aug))
+        H_aug[np.ix_(perm, perm)] = H
+        idx = np.concatenate([np.arange(aug[k][0], aug[k][0] + dims[k]) for k in korder])
+        H_aug[np.ix_(idx, idx)] += M
+        E = proposals[i].base_T_ee
+        try:
+            blocks = propagate(graph, values, robot + [(keys.hand_eye(cameras[0]), k_new[0], E)], tau, out_keys,
+                               system=(H_aug, aug))
+        except np.linalg.LinAlgError:  # keep the first pass's score for this one
+            continue
+        sys_after = {}
+        for c in cameras:
+            lam = abs(values.atDouble(keys.metric(c)))
+            sys_after[c] = (blocks[keys.hand_eye(c)], float(np.sqrt(max(blocks[keys.metric(c)][0, 0], 0)) / lam))
+        J, sig = _objective_after(sol, S_out, sys_after, len(base_T_ee), d_med, target_mm, target_deg)
+        proposals[i].objective_after, proposals[i].sigma_after = J, sig
 
 
 def _insert_like(dst, src, k):

@@ -54,6 +54,9 @@ class SolveOptions:
     # leave-one-pose-out solves whose spread the total covariance must cover (jackknife.py):
     # "auto" below JACKKNIFE_BELOW robot poses, "always", "never"
     jackknife: str = "auto"
+    # how: "resolve" (n re-solves) or "linearised" (a downdate of the solved graph per pose); None:
+    # jackknife.METHOD ("resolve"; bench/jackknife.py measures the two)
+    jackknife_method: str | None = None
 
 
 @dataclass

@@ -192,13 +192,20 @@ def _linear_system(graph, values):
     return H, offsets, lin
 
 
-def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> dict:
+def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list, system=None) -> dict:
     """{key: covariance block} of the fields through the whole linearised graph.
 
     ``robot``: (ee_T_cam key, base_T_cam key, measured base_T_ee) of every robot pose factor
     ``e = Log((base_T_ee ee_T_cam)^-1 base_T_cam)`` in ``graph``; ``tau`` as measure_field gives it.
+    ``system``: (H, offsets) of ``graph`` already linearised (key_offsets' layout); then only the
+    robot factors are linearised here.
     """
-    H, offsets, lin = linear_system(graph, values)
+    if system is None:
+        H, offsets, lin = linear_system(graph, values)
+        jacobian = lambda i: lin.at(i).jacobian()[0]  # noqa: E731
+    else:
+        (H, offsets), lin = system, None
+        jacobian = lambda i: graph.at(i).linearize(values).jacobian()[0]  # noqa: E731
     index = {tuple(graph.at(i).keys()): i for i in range(graph.size())}
     C = [values.atPose3(c) for _, c, _ in robot]
     # One field for the arm, over every robot pose's flange configuration (any camera's ee_T_cam).
@@ -210,14 +217,14 @@ def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> di
         model = graph.at(i).noiseModel()
         Ad = T.inverse().compose(E).AdjointMap()
         Rt = E.rotation().matrix().T
-        db = np.zeros((6, 36))
-        for b, Phi in enumerate(Phis):
-            for k in range(9):
-                f = Rt @ Phi[3 * n:3 * n + 3, k]
-                for kind, xi in enumerate((np.r_[np.zeros(3), f], np.r_[f, np.zeros(3)])):  # position, orientation
-                    db[:, 18 * kind + 9 * b + k] = model.whiten(Ad @ xi)  # b = -whitened error; de = -Ad xi
-        factor = lin.at(i)
-        A_i, _ = factor.jacobian()
+        # column 18 kind + 9 b + k: field b's k-th basis vector f as a position (kind 0: xi = [0; f]) or an
+        # orientation (kind 1: xi = [f; 0]) offset; b = -whitened error, de = -Ad xi
+        F = np.hstack([Rt @ Phi[3 * n:3 * n + 3, :9] for Phi in Phis])  # (3, 18)
+        xi = np.zeros((6, 36))
+        xi[3:, :18], xi[:3, 18:] = F, F
+        db = model.Whiten(Ad @ xi)
+        factor = graph.at(i)
+        A_i = jacobian(i)
         col = 0
         for key in factor.keys():
             a, d = offsets[key]
@@ -228,7 +235,7 @@ def propagate(graph, values, robot: list, tau: np.ndarray, out_keys: list) -> di
             for k in out_keys}
 
 
-def systematic_errors(graph, values, robot: list, cameras: dict) -> dict:
+def systematic_errors(graph, values, robot: list, cameras: dict, system=None) -> dict:
     """{camera: SystematicError} for a solved graph.
 
     ``robot``: (ee_T_cam key, base_T_cam key, measured base_T_ee) of every robot pose factor (one
@@ -248,7 +255,7 @@ def systematic_errors(graph, values, robot: list, cameras: dict) -> dict:
     whites = [w for w in whites if np.isfinite(w)]
     white = float(np.mean(whites)) if whites else float("nan")
     out_keys = [k for e, s in cameras.values() for k in (e, s) if k is not None]
-    blocks = propagate(graph, values, robot, tau, out_keys) if tau.sum() > 0 else {}
+    blocks = propagate(graph, values, robot, tau, out_keys, system) if tau.sum() > 0 else {}
     out = {}
     for cam, (e, s) in cameras.items():
         scale_rel = float(np.sqrt(blocks[s][0, 0]) / abs(values.atDouble(s))) if s is not None and s in blocks else 0.0

@@ -1,0 +1,117 @@
+"""Where ``live --watch`` reads the robot poses of the frames a capture script adds.
+
+* :class:`RobotPosesCsv`: the dataset's own pose file (``dataset.yaml``'s ``robot.poses``, usually
+  ``robot_poses.csv``), row by row (``session.read_pose_rows``).
+* :class:`PoseFiles`: any pose file that ``import files`` reads (``io/pose_files.py``: one file per
+  frame, JSON/YAML/CSV/text/.npy, in a folder or glob, or one file with a pose per line or entry),
+  with ``--pose-format``, ``--pose-key``, ``--unit`` and ``--direction`` as there. The frame id is
+  the pose's number as ``import files`` writes it (``0007`` for ``pose_7.json`` or a frame column of
+  7; by order where nothing is numbered), so the images go to ``images/<camera>/0007.png``.
+
+``poll()`` returns ``[(frame, base_T_ee 4x4 in metres or None, reason)]`` for every pose readable
+now; a pose that cannot be used (NaN, not a rotation, wrong count of numbers) has None and the
+reason naming its file and line. A per-frame file that does not parse yet may be half written: it is
+named and skipped only once it stops changing (same size and time over two polls).
+"""
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from calib3r_graph.errors import InputError
+from calib3r_graph.io.pose_files import PER_FRAME_SUFFIXES, expand, frame_numbers, parse_format, read_poses
+
+STRUCTURED = (".npy", ".json", ".yaml", ".yml")
+
+
+class RobotPosesCsv:
+    def __init__(self, path: Path, unit: str):
+        self.path, self.unit = Path(path), unit
+
+    def poll(self) -> list:
+        from calib3r_graph.live.session import read_pose_rows
+
+        return read_pose_rows(self.path, self.unit)
+
+
+class PoseFiles:
+    def __init__(self, spec: str, pose_format: str | None = None, pose_key: str | None = None, unit: str = "m",
+                 direction: str = "base_T_ee"):
+        if pose_format is None and not pose_key:
+            from calib3r_graph.io.pose_files import FORMAT_HELP
+
+            raise InputError("--pose-format", f"give the pose files' format: {FORMAT_HELP}")
+        self.spec, self.fmt, self.key = str(spec), parse_format(pose_format or "matrix"), pose_key
+        self.unit, self.direction = unit, direction
+        self._failed = {}  # file -> (size, mtime) when it last failed to parse
+
+    def _base_T_ee(self, M) -> np.ndarray:
+        from calib3r_graph.importers import DIRECTIONS, apply_convention
+
+        return apply_convention(M, self.unit, DIRECTIONS[self.direction]).matrix()
+
+    def _frame(self, number, index) -> str:
+        return f"{number if number is not None else index:04d}"  # as import files names the frames
+
+    def poll(self) -> list:
+        p = Path(self.spec)
+        if p.is_file():
+            return self._one_file(p)
+        if not p.is_dir() and not any(ch in self.spec for ch in "*?["):
+            return []  # the folder is not there yet
+        files = expand(self.spec, PER_FRAME_SUFFIXES)
+        numbers = frame_numbers(files) or [None] * len(files)
+        out = []
+        for i, (f, n) in enumerate(zip(files, numbers)):
+            frame = self._frame(n, i)
+            try:
+                recs = read_poses(str(f), self.fmt, self.key)
+                if len(recs) != 1:
+                    raise InputError(f, f"one file per frame should hold one pose, this one holds {len(recs)}")
+                out.append((frame, self._base_T_ee(recs[0].matrix), None))
+                self._failed.pop(f, None)
+            except InputError as e:
+                if self._settled(f):
+                    out.append((frame, None, f"{e.path}: {e.what}"))
+        return out
+
+    def _settled(self, f: Path) -> bool:
+        """Whether a file that failed to parse has not changed since it last failed (not half written)."""
+        try:
+            st = f.stat()
+        except OSError:
+            return False
+        now, before = (st.st_size, st.st_mtime_ns), self._failed.get(f)
+        self._failed[f] = now
+        return before == now
+
+    def _one_file(self, p: Path) -> list:
+        """One file of every frame's pose: read whole; where that fails, a text file line by line (each
+        line through the same reader, so one bad line skips one frame), else nothing until it changes."""
+        try:
+            recs = read_poses(str(p), self.fmt, self.key)
+            return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
+        except InputError as e:
+            if p.suffix.lower() in STRUCTURED:
+                return [] if not self._settled(p) else [(str(p), None, f"{e.path}: {e.what}")]
+        out = []
+        lines = [ln for ln in p.read_text(encoding="utf-8-sig").splitlines()]
+        with tempfile.TemporaryDirectory() as tmp:
+            one = Path(tmp) / f"line{p.suffix}"
+            index = 0
+            for i, line in enumerate(lines, start=1):
+                body = line.split("#", 1)[0].strip()
+                if not body or not any(ch.isdigit() for ch in body):
+                    continue  # a comment or a header
+                one.write_text(line + "\n")
+                try:
+                    rec = read_poses(str(one), self.fmt, self.key)[0]
+                    out.append((self._frame(rec.number, index), self._base_T_ee(rec.matrix), None))
+                except (InputError, IndexError) as e:
+                    first = body.replace(",", " ").split()[0]
+                    frame = f"{int(first):04d}" if first.isdigit() else self._frame(None, index)
+                    what = e.what if isinstance(e, InputError) else "no pose"
+                    out.append((frame, None, f"{p}: line {i}: {what}"))
+                index += 1
+        return out
