@@ -36,6 +36,7 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from _workdirs import add_work_args, work_dirs  # noqa: E402  (bench/, the script's own folder)
 from calib3r_graph.io.dataset import load_dataset, subset_dataset  # noqa: E402
 from calib3r_graph.io.predictions import load_predictions, split_view_id, subset_predictions  # noqa: E402
 from calib3r_graph.solver import jackknife as jk  # noqa: E402
@@ -241,14 +242,10 @@ def main():
     ap.add_argument("--no-compare", action="store_true", help="only --coverage")
     ap.add_argument("--consecutive", default="tabb_ds1",
                     help="data sets whose 10-pose subsets are runs of consecutive frames (default: tabb_ds1)")
-    ap.add_argument("--work", default="/tmp/jackknife_bench")
-    ap.add_argument("--cache", default="/tmp/jackknife_bench/cache")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results"))
+    add_work_args(ap, "jackknife_bench")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR, format="%(levelname)s: %(message)s")
-    work, cache, out = Path(args.work), Path(args.cache), Path(args.out)
-    work.mkdir(parents=True, exist_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
+    work, cache, out = work_dirs(args)
     result = {"command": " ".join(sys.argv), "data": {}}
     default_rounds = SolveOptions().irls_rounds
     for name in args.data.split(","):

@@ -40,6 +40,7 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from _workdirs import add_work_args, work_dirs  # noqa: E402  (bench/, the script's own folder)
 from calib3r_graph.geometry import pose_error  # noqa: E402
 from calib3r_graph.io.dataset import load_dataset  # noqa: E402
 from calib3r_graph.io.predictions import load_predictions  # noqa: E402
@@ -311,14 +312,10 @@ def main():
     ap.add_argument("--orders", default="recorded,guided,random",
                     help="any of recorded, guided, random, oracle (greedy on the linearised full result)")
     ap.add_argument("--order-file", help="also replay this fixed order: frame ids, whitespace separated")
-    ap.add_argument("--work", default="/tmp/live_real")
-    ap.add_argument("--cache", default="/tmp/live_real/cache")
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results"))
+    add_work_args(ap, "live_real")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
-    work, cache, out = Path(args.work), Path(args.cache), Path(args.out)
-    work.mkdir(parents=True, exist_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
+    work, cache, out = work_dirs(args)
     result = {"command": " ".join(sys.argv), "recordings": {}}
     for name in args.recordings.split(","):
         if name != "sim" and not (SHARED / name).is_dir():
