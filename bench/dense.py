@@ -176,7 +176,8 @@ def board_measures(ds_dir: Path, res_dir: Path) -> dict:
         sig["pattern_ba"] = float(np.sqrt(m @ R @ np.asarray(cov[cam_name])[3:, 3:] @ R.T @ m) * 1e3)
     sig["combined"] = float(np.hypot(sig["ours"], sig.get("pattern_ba", 0.0)))
     out["plane_sigma_along_normal_mm"] = sig
-    own = read_result(res_dir).base_T_cam
+    result = read_result(res_dir)
+    own = result.base_T_cam
     through = [Tb.compose(gtsam.Pose3(own[view_id(cam_name, d.frame)])).compose(d.cam_T_board).transformFrom(
         np.r_[(lo[:2] + hi[:2]) / 2, 0.0])[2] for d in dets if view_id(cam_name, d.frame) in own]
     out["board_plane_through_solved_poses_mm"] = float(np.mean(through) * 1e3)
@@ -184,7 +185,6 @@ def board_measures(ds_dir: Path, res_dir: Path) -> dict:
         m @ (np.asarray(cal["T_ee_cam"], float)[:3, 3] - X.translation()) * 1e3)
     # the square size on the dense cloud: corner rays through the solved poses, onto the dense plane
     c_base = base_T_board.transformFrom(c)
-    result = read_result(res_dir)
     pairs, spacing = _adjacent_pairs(obj)
     sizes = []
     for d in dets:
