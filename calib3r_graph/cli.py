@@ -375,7 +375,8 @@ def _add_live_args(p):
     mode.add_argument("--replay", choices=["recorded", "guided", "random"], help="replay the recording frame by frame")
     mode.add_argument("--watch", action="store_true", help="wait for the frames a capture script adds")
     p.add_argument("--out", required=True, help="output folder: calibration.json, next_poses.csv, live.jsonl")
-    p.add_argument("--seed", type=int, default=0, help="--replay random: the permutation's seed")
+    p.add_argument("--seed", type=int, default=0, help="--replay random: the permutation's seed; --replay guided: above 0, "
+                   "start from a seeded random frame instead of the first")
     p.add_argument("--target-mm", type=float, default=1.0, help="stop when the largest total sigma is within this")
     p.add_argument("--target-deg", type=float, default=0.1, help="... and this")
     p.add_argument("--next", type=int, default=5, help="how many next poses to propose")

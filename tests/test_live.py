@@ -249,3 +249,32 @@ def test_watch_reads_per_frame_json_poses_as_import_files_does(simulated, tmp_pa
     assert t_err < 0.01 and r_err < 1.0, (t_err, r_err)  # 4 poses of 320x240 images: mm, not a wrong convention
     lines = (tmp_path / "live" / "live.jsonl").read_text().splitlines()
     assert len(lines) == len(seen) and json.loads(lines[-1])["frames"] == seen[-1].frames
+
+
+def test_live_pairing_picks_each_new_views_best_partners_and_ends_at_the_batch_solve(simulated, tmp_path):
+    """The pairwise frontend run live pairs a new view with its `partners` best earlier views (the
+    batch frontend's pair selection: its own picks, the earlier views that pick it, then at most
+    `partners` a round for its `more_rounds`), not with every earlier view; the last replay step is
+    still the batch frontend and solve."""
+    from calib3r_graph.frontends.pairwise import PairwiseOptions, pairwise_predictions
+
+    root = simulated(seed=3, frames=8, images=True, width=320, height=240)
+    opt = PairwiseOptions(partners=2, more_rounds=1)
+    session = LiveSession(root, out=tmp_path / "live", guide=False)
+    session.source.opt = opt
+    ups = replay(session, "random", seed=2)
+    src = session.source
+    n = len(src.feats)
+    assert n == 8 and len(src.picked) == n
+    for k, f in enumerate(session.base_T_ee):  # arrival order
+        own, _, *more = src.picked[f"cam0/{f}"]
+        assert len(own) == min(opt.partners, k)  # its best partners among the k earlier views
+        assert len(more) <= opt.more_rounds and all(len(r) <= opt.partners for r in more), more
+    assert len(src.geoms) < n * (n - 1) // 2  # not every pair was matched
+    ds = load_dataset(root)
+    preds = pairwise_predictions(ds, None, opt, tmp_path / "live" / "cache", progress=False)
+    ref = solve(ds, preds, SolveOptions(noise=NoiseOptions(pixel_sigma_px=preds.info["match_noise_px"]),
+                                        progress=False))
+    assert ups[-1].ee_T_cam
+    for c, X in session.sol.ee_T_cam.items():
+        assert np.all(np.abs(_z(X, ref.ee_T_cam[c], ref.covariance[c])) < 1e-6)

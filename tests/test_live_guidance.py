@@ -60,3 +60,56 @@ def test_replay_takes_a_fixed_order(simulated, cut):
     assert list(session.base_T_ee) == order and sorted(ups[-1].frames) == sorted(order) and ups[-1].ee_T_cam
     with pytest.raises(Exception, match="fixed order"):
         replay(LiveSession(root, predictions="sim", guide=False), order + ["nope"])
+
+
+def test_candidate_jackknife_equals_the_linearised_jackknife_of_the_graph_with_it(simulated):
+    """Below 15 poses the few-pose cover (the leave-one-pose-out spread) is most of the total sigma
+    on real arms, so the guide predicts it per candidate (plan._jackknife_after, by Woodbury on each
+    sample's downdated system) instead of shrinking it as n / (n + 1) for every candidate alike. The
+    prediction must equal the linearised jackknife computed on the graph with the candidate's
+    factors added, sample by sample, and candidates must differ in it."""
+    from calib3r_graph.io.predictions import split_view_id
+    from calib3r_graph.solver import plan
+    from calib3r_graph.solver.jackknife import at_linear_minimum, factor_system, linearised_leave_one_out
+
+    root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
+    frames = load_dataset(root).frames
+    session = LiveSession(root, predictions="sim", guide=False)
+    for f in frames[:6]:
+        session.add_frame(f)
+    up = session.finish()  # solve's schedule: converged, so the candidate's zero residual is at the minimum
+    sol = session.sol
+    assert "cam0" in sol.stats.get("jackknife", {}), up.message
+    offsets = factor_system(sol.graph, sol.values)[1]
+    loo = plan._leave_one_out(sol, 6)
+    k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
+    covs = []
+    for g in frames[6:]:
+        E = session.poses_known[g]
+        fs, vals, best, _ = plan.candidate_factors(sol, session.preds, session.engine.last_noise, E,
+                                                   np.random.default_rng(0), keys_new=k_new,
+                                                   points=plan.scene_points_by_view(sol))
+        assert best is not None
+        D, U = plan._candidate_reduced(sol, fs, vals, offsets, k_new)
+        predicted = plan.jackknife_samples_after(sol, loo, D, U)["cam0"]
+        before = plan.jackknife_samples_after(sol, loo)["cam0"]
+        graph, values = gtsam.NonlinearFactorGraph(sol.graph), gtsam.Values(sol.values)
+        for f in fs:
+            graph.add(f)
+        for k in k_new:
+            if vals.exists(k) and not values.exists(k):
+                plan._insert_like(values, vals, k)
+        H, offs, factors = factor_system(graph, values)
+        # the prediction takes the candidate's residual at its expectation, zero: so does this
+        factors = factors[:-len(fs)] + [(ks, idx, AtA, 0 * Atb, 0.0) for ks, idx, AtA, Atb, _ in factors[-len(fs):]]
+        system = at_linear_minimum((H, offs, factors))
+        direct, _, _ = linearised_leave_one_out(graph, values, sol.keys, list(sol.base_T_cam), system)
+        moved = 0.0
+        for frame, dx in predicted.items():
+            if frame == split_view_id(best)[1]:
+                continue  # leaving out the view it overlaps strands the candidate's scale: no direct sample
+            assert np.allclose(dx, direct[frame]["cam0"], rtol=1e-5, atol=1e-9), frame
+            moved = max(moved, float(np.abs(dx - before[frame]).max()))
+        assert moved > 1e-5  # the candidate changes the samples (1e-5 rad or m)
+        covs.append(plan._jackknife_after(sol, loo, D, U, 6)["cam0"])
+    assert not np.allclose(covs[0], covs[1], rtol=0.05), "two candidates, one predicted jackknife"

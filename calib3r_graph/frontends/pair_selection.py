@@ -35,12 +35,11 @@ VLAD_WORDS = 64
 VOCABULARY_SAMPLE = 20000  # descriptors k-means learns from (k-means' cost grows with this, not with N)
 
 
-def vlad(descs: list, seed=0) -> np.ndarray:
-    """(N, VLAD_WORDS * 128) unit VLAD descriptors of N images' RootSIFT descriptors (each (n_i, 128))."""
-    out = np.zeros((len(descs), VLAD_WORDS * 128), np.float32)
+def vocabulary(descs: list, seed=0) -> np.ndarray | None:
+    """(words, 128) k-means centres learnt from (a sample of) N images' descriptors; None if they have none."""
     nonempty = [d for d in descs if len(d)]
     if not nonempty:
-        return out
+        return None
     rng = np.random.default_rng(seed)
     pool = np.concatenate(nonempty).astype(np.float32)
     if len(pool) > VOCABULARY_SAMPLE:
@@ -49,6 +48,16 @@ def vlad(descs: list, seed=0) -> np.ndarray:
     cv2.setRNGSeed(seed)  # k-means++ seeding draws from OpenCV's (per-thread) generator
     _, _, centres = cv2.kmeans(pool, words, None, (cv2.TERM_CRITERIA_MAX_ITER + cv2.TERM_CRITERIA_EPS, 20, 1e-4), 1,
                                cv2.KMEANS_PP_CENTERS)
+    return centres
+
+
+def vlad(descs: list, seed=0, centres=None) -> np.ndarray:
+    """(N, VLAD_WORDS * 128) unit VLAD descriptors of N images' RootSIFT descriptors (each (n_i, 128)),
+    over ``centres`` (:func:`vocabulary`; learnt from ``descs`` when None)."""
+    out = np.zeros((len(descs), VLAD_WORDS * 128), np.float32)
+    centres = vocabulary(descs, seed) if centres is None else centres
+    if centres is None:
+        return out
     c2 = (centres * centres).sum(1)
     for i, d in enumerate(descs):
         if not len(d):
@@ -71,13 +80,15 @@ def _ranks(x: np.ndarray) -> np.ndarray:
 class PairSelection:
     """The candidate pairs of a set of views, round by round (see the module's docstring)."""
 
-    def __init__(self, vids: list, descs: dict, base_T_ee: dict, partners: int, seed=0):
+    def __init__(self, vids: list, descs: dict, base_T_ee: dict, partners: int, seed=0, vlads=None):
+        """``vlads``: the views' (N, D) VLAD descriptors when the caller has them (a live session
+        keeps them per view); otherwise :func:`vlad` of ``descs``."""
         self.vids = list(vids)
         self.partners = partners
         n = len(self.vids)
         cams = [split_view_id(v)[0] for v in self.vids]
         frames = [split_view_id(v)[1] for v in self.vids]
-        V = vlad([descs[v] for v in self.vids], seed)
+        V = vlad([descs[v] for v in self.vids], seed) if vlads is None else np.asarray(vlads, np.float32)
         self.similarity = V @ V.T
         np.fill_diagonal(self.similarity, -np.inf)
         # robot: relative rotation angle and distance of the flanges, same camera only
@@ -109,6 +120,26 @@ class PairSelection:
 
     def _pair(self, i, j):
         return (self.vids[i], self.vids[j]) if i < j else (self.vids[j], self.vids[i])
+
+    def picks(self, vid) -> list:
+        """The pairs ``vid`` picks itself in the first round: its ``partners`` best partners and, for a
+        rig, its same-frame pairs (a live session adds the new view's picks only)."""
+        i = self.vids.index(vid)
+        own = {self._pair(i, j) for j in self.order[i][:self.partners]} if self.partners > 0 else set()
+        return sorted(own | {p for p in self.rig if vid in p})
+
+    def chosen_by(self, vid) -> list:
+        """The first round's pairs of ``vid`` that the other views pick (``vid`` is among their
+        ``partners`` best): with :meth:`picks`, every first-round pair with ``vid`` but the spanning tree's."""
+        i = self.vids.index(vid)
+        if self.partners <= 0:
+            return []
+        return sorted(self._pair(i, j) for j in range(len(self.vids)) if j != i and i in self.order[j][:self.partners])
+
+    def rank(self, vid) -> dict:
+        """{partner view: its place in ``vid``'s partner order}."""
+        i = self.vids.index(vid)
+        return {self.vids[j]: r for r, j in enumerate(self.order[i])}
 
     def all_pairs(self) -> list:
         n = len(self.vids)

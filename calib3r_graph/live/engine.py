@@ -18,7 +18,12 @@ Robust re-weighting and noise calibration run at every update, lagged by one: th
 uses the weights computed from the previous solution's residuals (new pairs: their RANSAC
 inliers, as ``solve``'s first round) and the previous update's variance factors; after the LM
 they are recomputed for the next update. The sequence of updates is thus the IRLS iteration
-itself, one round per frame, at the cost of residuals only. :meth:`Engine.finish` runs
+itself, one round per frame, at the cost of residuals only. Below ``JACKKNIFE_BELOW`` poses,
+where each pose still moves the estimate by more than its noise sigma and lagged weights belong to
+another solution, an update runs ``solve``'s schedule from the warm placement instead (measured in
+docs/live.md: 8.7-12.1 mm against 1.1-3.2 mm from the full result at 6-9 poses of rwhe_kuka_1),
+one Gauss-Newton step a round.
+:meth:`Engine.finish` runs
 ``solve``'s schedule (its initialisation, two re-weighting rounds, then the noise-calibrated round),
 so the final result is ``solve``'s on the same frames and predictions (see its docstring for why
 not warm).
@@ -51,7 +56,7 @@ from calib3r_graph.solver.graph import (Keys, add_depth_correction_priors, add_r
                                         robot_chi2, robot_views)
 from factors.match3d import DEPTH_CORRECTION_DIM
 from calib3r_graph.solver.init import initialise, pairwise_sim3
-from calib3r_graph.solver.jackknife import cover, factor_system, linearised_jackknife, wanted
+from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW, cover, factor_system, linearised_jackknife, wanted
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.solve import (MIN_ROBOT_POSES, Solution, SolveOptions, levenberg_marquardt,
                                         robust_weights)
@@ -150,6 +155,14 @@ class Engine:
         conf = [o.weight for o in observations]
         t = time.perf_counter()
         history = []
+        # Below JACKKNIFE_BELOW poses each new pose moves the estimate by more than its noise
+        # model's sigma, so weights lagged by one update are weights for another solution: on
+        # rwhe_kuka_1's guided order, at 6-9 poses, the one-step warm path ended 8.7-12.1 mm from the
+        # full result where `solve` on the same frames and predictions ends 0.9-1.6 mm from it, and
+        # LM to convergence on the lagged weights did no better (9.4 mm at 6). There an update runs
+        # solve's schedule from the warm placement, one Gauss-Newton step a round (0.8-3.2 mm; LM
+        # to convergence in each round ended within 0.3 mm of that, for twice the time).
+        few = len(frames) < JACKKNIFE_BELOW
         if cold:
             # solve's schedule: first round on the RANSAC inliers, irls_rounds re-weighted rounds, then
             # the noise-calibrated round
@@ -161,10 +174,17 @@ class Engine:
                     weights = robust_weights(observations, *ctx.terms(values), conf)
             calib = ctx.calibrate(values, weights, *ctx.terms(values)) if self.opt.noise_calibration else Calibration()
             values = ctx.lm(values, weights, calib, history)
+        elif few:  # the same rounds, the old pairs' first on IRLS weights at the warm start; the last below
+            weights, calib = ctx.warm_weights(values, conf, inliers), Calibration()
+            for rnd in range(self.opt.irls_rounds + 1):
+                values = ctx.step(values, weights, calib, history)
+                if rnd < self.opt.irls_rounds:
+                    weights = robust_weights(observations, *ctx.terms(values), conf)
+            calib = ctx.calibrate(values, weights, *ctx.terms(values)) if self.opt.noise_calibration else Calibration()
+        else:
+            weights, calib = ctx.warm_weights(values, conf, inliers), state.calibration
         system = None
         if not cold:
-            weights = ctx.warm_weights(values, conf, inliers)
-            calib = state.calibration
             graph = ctx.graph(values, weights, calib)
             stepped = ctx.gauss_newton(graph, values, history)
             if stepped is None:  # the step did not lower the cost: LM to convergence instead
@@ -451,6 +471,12 @@ class _Context:
         moved = [(ks, idx, AtA, Atb - AtA @ dx[idx], btb - 2 * dx[idx] @ Atb + dx[idx] @ AtA @ dx[idx])
                  for ks, idx, AtA, Atb, btb in factors]
         return new, (H, offsets, moved)
+
+    def step(self, values, weights, calib, history):
+        """One Gauss-Newton step on the graph with these weights (LM to convergence where it does not
+        lower the cost)."""
+        stepped = self.gauss_newton(self.graph(values, weights, calib), values, history)
+        return self.lm(values, weights, calib, history) if stepped is None else stepped[0]
 
     def lm(self, values, weights, calib, history):
         graph = self.graph(values, weights, calib)

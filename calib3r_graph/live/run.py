@@ -18,7 +18,9 @@ def replay(session: LiveSession, order: str | list, seed: int = 0, on_update=Non
     """Replay the session's recording. ``order``: "recorded", "random" (seeded permutation),
     "guided": the next frame is the unused recorded frame that the guidance scores best (the
     recording's poses are the reachable set); before the first solve, the unused frame whose
-    flange rotation differs most from those used; or a list of frame ids (a fixed order, e.g. an
+    flange rotation differs most from those used; it starts from the first recorded frame, or with
+    ``seed`` above 0 from a seeded random one (where a session starts decides much of its first
+    frames, so one guided order is one draw); or a list of frame ids (a fixed order, e.g. an
     oracle's; frames it leaves out are not used). Ends with :meth:`LiveSession.finish`."""
     from calib3r_graph.solver.plan import score_candidates
 
@@ -37,7 +39,9 @@ def replay(session: LiveSession, order: str | list, seed: int = 0, on_update=Non
     else:
         raise InputError("--replay", f"'{order}' is not recorded, guided or random")
     updates, used = [], []
-    nxt = frames[0] if todo is None else None
+    nxt = None
+    if todo is None:
+        nxt = frames[0] if seed == 0 else frames[int(np.random.default_rng(seed).integers(len(frames)))]
     while True:
         f = todo.pop(0) if todo is not None else nxt
         if f is None:

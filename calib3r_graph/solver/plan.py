@@ -326,26 +326,23 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     points = scene_points_by_view(sol)
     proposals, parts = [], []
+    loo = _leave_one_out(sol, len(frames))
     for kind, E, frame in candidates:
         fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points)
         S_out = S[np.ix_(out_idx, out_idx)]
-        M = None
+        D, U = None, None
         if best is not None:
-            M, order, dims = _candidate_information(sol, fs, vals, offsets, k_new)
-            old = [k for k in order if k in offsets]
-            m = sum(dims[k] for k in old)
-            A, B, Cn = M[:m, :m], M[:m, m:], M[m:, m:]
-            D = A - B @ np.linalg.solve(Cn + 1e-12 * np.eye(len(Cn)), B.T)
-            U = np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in old])
+            D, U = _candidate_reduced(sol, fs, vals, offsets, k_new)
             S_uu, S_ou = S[np.ix_(U, U)], S[np.ix_(out_idx, U)]
             S_out = S_out - S_ou @ D @ np.linalg.solve(np.eye(len(U)) + S_uu @ D, S_ou.T)
         gain_after = systematic_error_gain({**base_T_ee, "_candidate": E}, frames + ["_candidate"])[0]
         factor = (gain_after / gain_before) ** 2 if np.isfinite(gain_before) and gain_before > 0 else 1.0
         sys_after = {c: (sol.systematic[c].covariance * factor, sol.systematic[c].scale_sigma_rel * np.sqrt(factor))
                      for c in cameras if c in sol.systematic}
-        J, sig = _objective_after(sol, S_out, sys_after, len(frames), d_med, target_mm, target_deg)
+        jk_after = _jackknife_after(sol, loo, D, U, len(frames))
+        J, sig = _objective_after(sol, S_out, sys_after, jk_after, d_med, target_mm, target_deg)
         proposals.append(Proposal(E, kind, J, 0.0, sig, n_vis, frame))
-        parts.append((fs, vals, S_out, M is not None))
+        parts.append((fs, vals, S_out, jk_after))
     _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_med, target_mm, target_deg)
     J_now = objective(sol.covariance, sol.ee_T_cam, {c: sol.metric_scale[c][1] / abs(sol.metric_scale[c][0])
                                                      for c in cameras}, d_med, target_mm, target_deg)
@@ -355,6 +352,17 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
 
 
 SHORTLIST = 4  # candidates re-scored with the exact systematic part (besides the best of each kind)
+
+
+def _candidate_reduced(sol, fs, vals, offsets, k_new):
+    """(D, U): the candidate factors' information on the current variables they touch, its own new
+    variables eliminated (Schur complement), and those variables' columns ``U`` in ``offsets``."""
+    M, order, dims = _candidate_information(sol, fs, vals, offsets, k_new)
+    old = [k for k in order if k in offsets]
+    m = sum(dims[k] for k in old)
+    A, B, Cn = M[:m, :m], M[:m, m:], M[m:, m:]
+    D = A - B @ np.linalg.solve(Cn + 1e-12 * np.eye(len(Cn)), B.T)
+    return D, np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in old])
 
 
 def _candidate_information(sol, fs, vals, offsets, k_new):
@@ -384,21 +392,85 @@ def _candidate_information(sol, fs, vals, offsets, k_new):
     return M, order, dims
 
 
-def _objective_after(sol, S_out, sys_after: dict, n: int, d_med, target_mm, target_deg):
+def _leave_one_out(sol, n: int):
+    """({frame: (kept columns, Cholesky factor of H_-i, dx_-i)}, offsets) of the linearised
+    jackknife (``jackknife.linearised_leave_one_out``) about ``sol``, for :func:`_jackknife_after`;
+    None where the update after one more pose will have no jackknife (``JACKKNIFE_BELOW``)."""
+    from calib3r_graph.solver.jackknife import (JACKKNIFE_BELOW, at_linear_minimum, factor_system,
+                                                linearised_leave_one_out)
+
+    if not sol.stats.get("jackknife") or n + 1 >= JACKKNIFE_BELOW:
+        return None
+    system, systems = at_linear_minimum(factor_system(sol.graph, sol.values)), {}
+    linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam), system, systems)
+    return systems, system[1]
+
+
+def _jackknife_after(sol, loo, D, U, n: int) -> dict:
+    """{camera: 6x6} the linearised jackknife's covariance of ee_T_cam once the candidate is added.
+
+    Below ``JACKKNIFE_BELOW`` poses the few-pose cover usually dominates the total (rwhe_kuka_1 at
+    5-12 poses: 3.6-50 mm of it against 1-4 mm of the noise model), and it is the spread of the
+    leave-one-pose-out estimates: it falls with a candidate that makes the estimate depend less on
+    any one pose, not as 1/n. With the candidate's information ``D`` on the columns ``U`` (its
+    factors, its own variables eliminated), the sample without pose i moves from
+    ``dx_-i = -H_-i^-1 g_i`` to ``-(H_-i + D)^-1 g_i``: at the current solution the candidate's
+    expected residual, hence its gradient, is zero. By Woodbury, with ``Z = H_-i^-1 E_U``:
+    ``dx_-i - Z (I + D Z_U)^-1 D dx_-i[U]``. A sample whose pose takes away the view the candidate
+    overlaps keeps its dx (the candidate's robot factor alone does not reach ee_T_cam), and leaving
+    the candidate itself out gives the current estimate, a zero sample. Without ``loo``: the
+    current cover shrunk as n / (n + 1) where the next update has a jackknife, else none."""
+    from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW
+
+    jk = sol.stats.get("jackknife", {})
+    if loo is None:
+        if n + 1 >= JACKKNIFE_BELOW:
+            return {}
+        return {c: np.asarray(r["covariance"]) * n / (n + 1) for c, r in jk.items()}
+    out = {}
+    for c, by_frame in jackknife_samples_after(sol, loo, D, U).items():
+        if c in jk and len(by_frame) >= 2:  # with the zero sample, 3 or more (as jackknife._jackknife_report)
+            xs = np.array([np.zeros(6), *by_frame.values()])
+            out[c] = (len(xs) - 1) / len(xs) * (xs - xs.mean(0)).T @ (xs - xs.mean(0))
+    return out
+
+
+def jackknife_samples_after(sol, loo, D=None, U=None) -> dict:
+    """{camera: {frame: dx of ee_T_cam (6,)}}: each linearised leave-one-pose-out sample once the
+    candidate's information ``D`` on the columns ``U`` is added (:func:`_jackknife_after`)."""
+    from scipy.linalg import cho_solve
+
+    systems, offsets = loo
+    he = {c: offsets[sol.keys.hand_eye(c)][0] for c in sol.ee_T_cam}
+    out = {c: {} for c in he}
+    for frame, (keep, cho, dx) in systems.items():
+        if D is not None:
+            pos = np.minimum(np.searchsorted(keep, U), len(keep) - 1)
+            if np.array_equal(keep[pos], U):
+                E = np.zeros((len(keep), len(U)))
+                E[pos, np.arange(len(U))] = 1.0
+                Z = cho_solve(cho, E, check_finite=False)
+                dx = dx - Z @ np.linalg.solve(np.eye(len(U)) + D @ Z[pos], D @ dx[pos])
+        for c, a in he.items():
+            i = int(np.searchsorted(keep, a))
+            out[c][frame] = dx[i:i + 6]
+    return out
+
+
+def _objective_after(sol, S_out, sys_after: dict, jk_after: dict, d_med, target_mm, target_deg):
     """(objective, {camera: sigma_ee_frame}) of the total after a candidate: the noise model's
     (ee_T_cam, scale) marginal ``S_out`` (7 per camera), ``sys_after`` {camera: (6x6, scale rel)}
-    and the jackknife's cover shrunk as n / (n + 1)."""
+    and the jackknife's cover ``jk_after`` {camera: 6x6} (:func:`_jackknife_after`)."""
     from calib3r_graph.io.results import covariance_in_ee_frame, sigma_ee_frame
     from calib3r_graph.solver.jackknife import cover
 
-    jk = sol.stats.get("jackknife", {})
     covs, scale_rel, sig = {}, {}, {}
     for i, c in enumerate(sol.ee_T_cam):
         model, var_l = S_out[7 * i:7 * i + 6, 7 * i:7 * i + 6], S_out[7 * i + 6, 7 * i + 6]
         sys_cov, sys_rel = sys_after.get(c, (np.zeros((6, 6)), 0.0))
         total = model + sys_cov
-        if c in jk:
-            total = cover(total, np.asarray(jk[c]["covariance"]) * n / (n + 1))
+        if c in jk_after:
+            total = cover(total, jk_after[c])
         covs[c] = total
         scale_rel[c] = float(np.hypot(np.sqrt(max(var_l, 0)) / abs(sol.metric_scale[c][0]), sys_rel))
         sig[c] = sigma_ee_frame(np.sqrt(np.maximum(np.diag(covariance_in_ee_frame(sol.ee_T_cam[c], total)), 0)))
@@ -425,7 +497,7 @@ def _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_m
     H = None
     out_keys = [k for c in cameras for k in (keys.hand_eye(c), keys.metric(c))]
     for i in pick:
-        fs, vals, S_out, _ = parts[i]
+        fs, vals, S_out, jk_after = parts[i]
         graph, values = gtsam.NonlinearFactorGraph(sol.graph), gtsam.Values(sol.values)
         for f in fs:
             graph.add(f)
@@ -452,7 +524,7 @@ def _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_m
         for c in cameras:
             lam = abs(values.atDouble(keys.metric(c)))
             sys_after[c] = (blocks[keys.hand_eye(c)], float(np.sqrt(max(blocks[keys.metric(c)][0, 0], 0)) / lam))
-        J, sig = _objective_after(sol, S_out, sys_after, len(base_T_ee), d_med, target_mm, target_deg)
+        J, sig = _objective_after(sol, S_out, sys_after, jk_after, d_med, target_mm, target_deg)
         proposals[i].objective_after, proposals[i].sigma_after = J, sig
 
 

@@ -1,0 +1,39 @@
+"""Below JACKKNIFE_BELOW poses a live update runs solve's schedule from the warm placement
+(live/engine.py): there each new pose moves the estimate by more than its noise sigma, and the
+one-step warm path with weights lagged by one update ended 8.7-12.1 mm from rwhe_kuka_1's full
+result where solve on the same frames ends 0.9-1.6 mm from it (docs/live.md). Each such update
+must be solve's result on the frames so far."""
+
+import dataclasses
+
+import gtsam
+import numpy as np
+
+from calib3r_graph.io.dataset import load_dataset, subset_dataset
+from calib3r_graph.io.predictions import load_predictions, subset_predictions
+from calib3r_graph.io.results import covariance_in_ee_frame
+from calib3r_graph.live import LiveSession
+from calib3r_graph.solver.solve import solve
+
+
+def test_each_update_below_15_poses_is_solves_result_on_the_frames_so_far(simulated):
+    root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    session = LiveSession(root, predictions="sim", guide=False)
+    worst, steps = 0.0, 0
+    for n, f in enumerate(ds.frames, 1):
+        up = session.add_frame(f)
+        if not up.ee_T_cam:
+            continue
+        # the session's options as they stand (its pixel sigma follows the predictions); z in solve's
+        # total sigma, the equivalence goal's (the linearised cover keeps the test short)
+        opt = dataclasses.replace(session.engine.opt, jackknife_method="linearised")
+        ref = solve(subset_dataset(ds, ds.frames[:n]), subset_predictions(preds, ds.frames[:n]), opt)
+        X = session.sol.ee_T_cam["cam0"]
+        d = gtsam.Pose3.Logmap(ref.ee_T_cam["cam0"].between(X))
+        R = X.rotation().matrix()
+        z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance["cam0"])))
+        worst, steps = max(worst, float(np.abs(z).max())), steps + 1
+    # the one-step warm path: up to 0.32 sigma from solve at 7 poses on this recording
+    assert steps >= 4 and worst < 0.1, (steps, worst)
