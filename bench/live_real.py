@@ -299,7 +299,7 @@ def plot(name, runs, path):
         err = [max(c["error_mm"] for c in s["cameras"].values()) for s in r["steps"][:-1] if "cameras" in s]
         sig = [max(c["sigma_mm"] for c in s["cameras"].values()) for s in r["steps"][:-1] if "cameras" in s]
         kw = {"color": colours[r["order"]], "alpha": 0.35 if r["order"] == "random" else 1.0, "lw": 1}
-        label = r["order"] if r["order"] != "random" or r["seed"] == 0 else None
+        label = r["order"] if r["seed"] == 0 else None  # one legend entry per order
         axes[0].semilogy(xs, err, label=label, **kw)
         axes[1].semilogy(xs, sig, label=label, **kw)
     for ax, what in zip(axes, ("error to the full batch result (mm)", "largest total sigma (mm)")):
