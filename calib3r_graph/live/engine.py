@@ -56,7 +56,8 @@ from calib3r_graph.solver.graph import (Keys, add_depth_correction_priors, add_r
                                         robot_chi2, robot_views)
 from factors.match3d import DEPTH_CORRECTION_DIM
 from calib3r_graph.solver.init import initialise, pairwise_sim3
-from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW, cover, factor_system, linearised_jackknife, wanted
+from calib3r_graph.solver.jackknife import (JACKKNIFE_BELOW, cover, factor_system, linearised_jackknife, moved_system,
+                                            wanted)
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.solve import (MIN_ROBOT_POSES, Solution, SolveOptions, levenberg_marquardt,
                                         robust_weights)
@@ -160,7 +161,7 @@ class Engine:
         # rwhe_kuka_1's guided order, at 6-9 poses, the one-step warm path ended 8.7-12.1 mm from the
         # full result where `solve` on the same frames and predictions ends 0.9-1.6 mm from it, and
         # LM to convergence on the lagged weights did no better (9.4 mm at 6). There an update runs
-        # solve's schedule from the warm placement, one Gauss-Newton step a round (0.8-3.2 mm; LM
+        # solve's schedule from the warm placement, one Gauss-Newton step a round (1.1-3.2 mm; LM
         # to convergence in each round ended within 0.3 mm of that, for twice the time).
         few = len(frames) < JACKKNIFE_BELOW
         if cold:
@@ -467,10 +468,7 @@ class _Context:
                         "method": "gauss-newton step"})
         if not e1 <= e0:
             return None
-        # the same linear system about the new point: b' = b - A dx per factor
-        moved = [(ks, idx, AtA, Atb - AtA @ dx[idx], btb - 2 * dx[idx] @ Atb + dx[idx] @ AtA @ dx[idx])
-                 for ks, idx, AtA, Atb, btb in factors]
-        return new, (H, offsets, moved)
+        return new, moved_system((H, offsets, factors), dx)  # the same linear system about the new point
 
     def step(self, values, weights, calib, history):
         """One Gauss-Newton step on the graph with these weights (LM to convergence where it does not

@@ -171,7 +171,12 @@ def at_linear_minimum(system) -> tuple:
     g = np.zeros(len(H))
     for _, idx, _, Atb, _ in factors:
         g[idx] += Atb
-    dx = np.linalg.solve(H, g)
+    return moved_system(system, np.linalg.solve(H, g))
+
+
+def moved_system(system, dx) -> tuple:
+    """The same linear system about the point moved by ``dx``: per factor ``b' = b - A dx``."""
+    H, offsets, factors = system
     return H, offsets, [(ks, idx, AtA, Atb - AtA @ dx[idx], btb - 2 * dx[idx] @ Atb + dx[idx] @ AtA @ dx[idx])
                         for ks, idx, AtA, Atb, btb in factors]
 
