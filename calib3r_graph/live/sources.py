@@ -154,7 +154,7 @@ class IncrementalPairwise:
         vids = self._vids(sub, sub.frames)
         feats = {v: self.feats[v] for v in vids if v in self.feats}
         candidates = [ab for ab in itertools.combinations(vids, 2) if ab in self.geoms]
-        verified = {ab: self.geoms[ab] for ab in candidates if self.geoms[ab] is not None}
+        verified = self._verified(vids)
         kept, info = self._robot_consistent(verified, sub.base_T_ee)
         if self.opt.rescue:
             todo = [ab for ab in candidates if ab not in self.rescued]
