@@ -42,9 +42,8 @@ import numpy as np
 
 from calib3r_graph.errors import InputError
 from calib3r_graph.io.predictions import split_view_id
-from calib3r_graph.solver.graph import depth_correction, point_sqrt_info
+from calib3r_graph.solver.graph import depth_correction, scene_linearisation
 from calib3r_graph.solver.systematic import linear_system
-from factors.match3d import Match3DMeasurement, match3d_error, match3d_residuals
 
 log = logging.getLogger(__name__)
 
@@ -112,55 +111,54 @@ def _moved(Ks, cameras, cam, p, h) -> dict:
     return out
 
 
-class _Keys:
-    """What factors.match3d's error function reads of its CustomFactor: the keys."""
-
-    def __init__(self, keys):
-        self._keys = keys
-
-    def keys(self):
-        return self._keys
-
-
-def _pair_terms(o, w, values, keys, Ks, noise, thetas, steps):
+def _pair_terms(o, w, values, keys, Ks, noise, thetas, steps, whitening=None):
     """One view pair's part of the sensitivities, or None when no parameter moves it:
     (its keys, J^T dE (D, m), dE^T dE (m, m), dE^T e (m,)) with e its whitened residual, J its
     whitened Jacobian and dE the change of e per +1 sigma of each parameter (``steps[j][view]``:
-    that sigma on the view's grid)."""
-    keep = w > 0
-    if keep.sum() < 3:  # as add_scene_factors: no factor
+    that sigma on the view's grid). ``whitening``: the pair's point_sqrt_info at ``values`` with
+    unit weights, if already computed (scaled by sqrt(w) it is the weighted one, point by point)."""
+    if not _moved_by(o, thetas):
         return None
-    ca, cb = split_view_id(o.view_a)[0], split_view_id(o.view_b)[0]
-    js = [j for j, (c, _, _) in enumerate(thetas) if c in (ca, cb)]
+    lin = scene_linearisation(o, w, values, keys, Ks, noise, whitening)
+    return None if lin is None else pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps)
+
+
+def _moved_by(o, thetas) -> list:
+    """The parameters (indices into thetas) of the cameras of pair ``o``."""
+    cams = (split_view_id(o.view_a)[0], split_view_id(o.view_b)[0])
+    return [j for j, (c, _, _) in enumerate(thetas) if c in cams]
+
+
+def pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps):
+    """:func:`_pair_terms` from the pair's factor linearised at ``values``
+    (solver.graph.scene_linearisation: keys, kept observations, W, J, e); None when no parameter
+    moves it. The residual ``e_p = g_a - (s_b / s_a) R_ab g_b - t_ab / s_a`` (factors.match3d, with
+    ``g = (1 + phi . c) P`` the corrected lifted point) is affine in the lifted points, so a change
+    ``d`` of them changes it by ``(1 + phi_a . c_a) d_a - (s_b / s_a) (1 + phi_b . c_b) R_ab d_b``
+    exactly; :func:`_lift_derivative`'s ``d`` has one non-zero coordinate per parameter."""
+    k, o, W, J, e = lin
+    js = _moved_by(o, thetas)
     if not js:
         return None
-    o = o.subset(keep)
-    T_a, T_b = values.atPose3(keys.pose(o.view_a)), values.atPose3(keys.pose(o.view_b))
+    ca, cb = split_view_id(o.view_a)[0], split_view_id(o.view_b)[0]
     s_a, s_b = values.atDouble(keys.scale(o.view_a)), values.atDouble(keys.scale(o.view_b))
-    c_a, c_b = depth_correction(values, keys, o.view_a), depth_correction(values, keys, o.view_b)
-    W = point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b], T_a.between(T_b), s_b / s_a, noise, w[keep])
-    basis = (o.basis_a, o.basis_b) if noise.depth_correction_sigma > 0 else (None, None)
-    k = [keys.pose(o.view_a), keys.pose(o.view_b), keys.scale(o.view_a), keys.scale(o.view_b)]
-    k += [keys.correction(o.view_a), keys.correction(o.view_b)] if basis[0] is not None else []
-    m = Match3DMeasurement(o.pts_a, o.pts_b, W, *basis)
-    blocks = [None] * len(k)
-    e = match3d_error(m, _Keys(k), values, blocks)
-    # The residual is affine in the lifted points: its change is r(d) - r(0) for the points' change
-    # d, for all parameters at once (stacked).
-    d = np.zeros((len(js) + 1, len(o), 2, 3))
-    for i, j in enumerate(js):
+    R_ab = values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))).rotation().matrix()
+    alpha, beta = np.ones(len(o)), np.full(len(o), s_b / s_a)
+    if noise.depth_correction_sigma > 0:
+        alpha = alpha + o.basis_a @ depth_correction(values, keys, o.view_a)
+        beta = beta * (1 + o.basis_b @ depth_correction(values, keys, o.view_b))
+    dE = np.zeros((len(o), 3, len(thetas)))
+    for j in js:
         c, p, _ = thetas[j]
-        for side, (v, cam, pts) in enumerate(((o.view_a, ca, o.pts_a), (o.view_b, cb, o.pts_b))):
-            if cam == c:
-                d[i, :, side] = _lift_derivative(pts, Ks[v], p, steps[j][v])
-    tile = (lambda x: None if x is None else np.tile(x, (len(js) + 1, 1)))
-    r = match3d_residuals(Match3DMeasurement(d[:, :, 0].reshape(-1, 3), d[:, :, 1].reshape(-1, 3),
-                                             np.zeros((d.shape[0] * len(o), 3, 3)), tile(basis[0]), tile(basis[1])),
-                          T_a, T_b, s_a, s_b, c_a, c_b).reshape(len(js) + 1, len(o), 3)
-    dE = np.zeros((len(e), len(thetas)))
-    for i, j in enumerate(js):
-        dE[:, j] = np.matmul(W, (r[i] - r[-1])[:, :, None]).reshape(-1)
-    return k, np.hstack(blocks).T @ dE, dE.T @ dE, dE.T @ e
+        axis = p % 2
+        if ca == c:
+            d_a = _lift_derivative(o.pts_a, Ks[o.view_a], p, steps[j][o.view_a])[:, axis]
+            dE[:, :, j] += W[:, :, axis] * (alpha * d_a)[:, None]
+        if cb == c:
+            d_b = _lift_derivative(o.pts_b, Ks[o.view_b], p, steps[j][o.view_b])[:, axis]
+            dE[:, :, j] -= (W @ R_ab[:, axis]) * (beta * d_b)[:, None]
+    dE = dE.reshape(len(e), len(thetas))
+    return k, J.T @ dE, dE.T @ dE, dE.T @ e
 
 
 def _lift_derivative(pts, K, p, h):
@@ -180,16 +178,29 @@ def _grid_steps(Ks, cameras, cam, p, h) -> dict:
     return {v: h * K[axis, axis] / cameras[cam].K[axis, axis] for v, K in Ks.items() if split_view_id(v)[0] == cam}
 
 
+def camera_parameters(keys, cameras: dict, Ks) -> tuple[list, list]:
+    """(thetas, steps): each (camera, parameter index, 1-sigma px) with a stated sigma, and for
+    each the {view: that sigma on the view's grid} that :func:`pair_sensitivity` takes."""
+    thetas = [(c, p, float(s)) for c in keys.cameras if cameras[c].params_sigma is not None
+              for p, s in enumerate(cameras[c].params_sigma) if s > 0]
+    return thetas, [_grid_steps(Ks, cameras, c, p, s) for c, p, s in thetas]
+
+
 def camera_model_errors(graph, values, keys, observations, weights, Ks, noise, cameras: dict,
-                        source: str = "dataset.yaml") -> dict:
+                        source: str = "dataset.yaml", system=None, whitening=None, terms=None) -> dict:
     """{camera: CameraModelError} of a solved graph.
 
     ``observations``, ``weights``, ``Ks``, ``noise``: what the 3D match factors of ``graph``
     were built from (solver.graph.add_scene_factors); ``cameras``: {name: Camera} with
-    ``params_sigma`` (px) or None.
+    ``params_sigma`` (px) or None. Given ``system`` ((H, offsets) of ``graph`` at ``values``), it is
+    not linearised again; ``whitening``: each pair's point_sqrt_info at ``values`` with unit
+    weights; ``terms``: each pair's :func:`pair_sensitivity` at ``values`` with the parameters of
+    :func:`camera_parameters`, where the caller linearised the pairs itself. H and the pairs' terms
+    must come from one linearisation point: on rwhe_kuka_1's live updates, H from before a
+    Gauss-Newton step with terms from after it put the share off by up to 700x (the sum over pairs
+    cancels to a small remainder that only a consistent H leaves small).
     """
-    thetas = [(c, p, float(s)) for c in keys.cameras if cameras[c].params_sigma is not None
-              for p, s in enumerate(cameras[c].params_sigma) if s > 0]
+    thetas, steps = camera_parameters(keys, cameras, Ks)
     out = {c: CameraModelError(np.zeros((6, 6)), 0.0, None, "", {}, None) for c in keys.cameras}
     for c in keys.cameras:  # given but all zero: propagated, and nothing to add
         if cameras[c].params_sigma is not None:
@@ -197,15 +208,17 @@ def camera_model_errors(graph, values, keys, observations, weights, Ks, noise, c
                                       [float("inf")] * 4)
     if not thetas:
         return out
-    H, offsets, _ = linear_system(graph, values)
-    steps = [_grid_steps(Ks, cameras, c, p, s) for c, p, s in thetas]
+    H, offsets = system[:2] if system is not None else linear_system(graph, values)[:2]
     n, mm = H.shape[0], len(thetas)
     G, info, grad = np.zeros((n, mm)), np.zeros((mm, mm)), np.zeros(mm)
-    for o, w in zip(observations, weights):
-        terms = _pair_terms(o, w, values, keys, Ks, noise, thetas, steps)
-        if terms is None:
+    for i, (o, w) in enumerate(zip(observations, weights)):
+        if terms is not None:
+            t = terms[i]
+        else:
+            t = _pair_terms(o, w, values, keys, Ks, noise, thetas, steps, None if whitening is None else whitening[i])
+        if t is None:
             continue
-        k, JdE, dEdE, dEe = terms
+        k, JdE, dEdE, dEe = t
         row = 0
         for key in k:
             a, d = offsets[key]
@@ -264,14 +277,17 @@ def dominance(camera, T_ee_cam, rest, err) -> str | None:
             "in many images, tilted and covering the corners) rather than adding robot poses")
 
 
-def add_camera_model(sol, ds, weights, Ks, noise):
+def add_camera_model(sol, ds, weights, Ks, noise, at=None, **shared):
     """Add each camera's camera-model share to ``sol``'s total covariance and metric-scale sigma,
     after the jackknife's cover (the leave-one-out solves share the intrinsics, so their spread
-    holds none of it); ``sol.stats["camera_model"]`` records it."""
+    holds none of it); ``sol.stats["camera_model"]`` records it. ``at``: the values the
+    share is linearised at (default ``sol.values``); ``shared``: :func:`camera_model_errors`'
+    ``system``, ``whitening`` or ``terms`` at those values (a live update's Gauss-Newton step
+    linearised before it moved: its H and its pairs' terms are both from there)."""
     t = time.perf_counter()
-    cm = camera_model_errors(sol.graph, sol.values, sol.keys, sol.observations, weights, Ks, noise,
+    cm = camera_model_errors(sol.graph, sol.values if at is None else at, sol.keys, sol.observations, weights, Ks, noise,
                              {c: ds.cameras[c] for c in sol.keys.cameras},
-                             ds.meta.get("params_sigma_source", "dataset.yaml"))
+                             ds.meta.get("params_sigma_source", "dataset.yaml"), **shared)
     for c, err in cm.items():
         msg = dominance(c, sol.ee_T_cam[c], np.asarray(sol.covariance[c]), err)
         if msg:

@@ -27,7 +27,7 @@ import numpy as np
 
 import factors
 from factors.hand_eye import robot_pose_noise_covariance
-from factors.match3d import DEPTH_CORRECTION_DIM, Match3DMeasurement, match3d_residuals
+from factors.match3d import DEPTH_CORRECTION_DIM, Match3DMeasurement, match3d_error, match3d_residuals
 from calib3r_graph.io.predictions import split_view_id
 
 
@@ -124,7 +124,8 @@ def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise
         keep = w > 0
         if keep.sum() < 3:
             continue
-        o = o.subset(keep)
+        if not keep.all():  # (a copy of every array otherwise)
+            o = o.subset(keep)
         w = w[keep]
         if whitening is not None:
             W = whitening[i][keep] * np.sqrt(w)[:, None, None]
@@ -145,6 +146,49 @@ def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise
             m = factors.ReprojectionMeasurement(o.pts_a, o.pts_b, o.uv_a, o.uv_b, Ks[o.view_a], Ks[o.view_b], W2,
                                                 *basis)
             graph.add(factors.make_reprojection_factor(m, k3d))
+
+
+def scene_keys(o, keys, noise) -> list:
+    """The 3D match factor's keys, in its order (add_scene_factors)."""
+    k = [keys.pose(o.view_a), keys.pose(o.view_b), keys.scale(o.view_a), keys.scale(o.view_b)]
+    return k + ([keys.correction(o.view_a), keys.correction(o.view_b)] if noise.depth_correction_sigma > 0 else [])
+
+
+class _FactorKeys:
+    """What factors.match3d's error function reads of its CustomFactor: the keys."""
+
+    def __init__(self, keys):
+        self._keys = keys
+
+    def keys(self):
+        return self._keys
+
+
+def scene_linearisation(o, w, values, keys, Ks, noise, whitening=None):
+    """The 3D match factor that :func:`add_scene_factors` makes of pair ``o`` with weights ``w``,
+    linearised at ``values`` by hand: (its keys, the kept observations, their W (n, 3, 3), the
+    whitened Jacobian J (3n, D) in the keys' order and tangent spaces, the whitened residual e
+    (3n,)), or None where it makes no factor. GTSAM's linearisation of that factor is A = J,
+    b = -e (its row compression is exact), so one Jacobian can serve both the linear system and
+    what else needs J (solver/camera_model.py). ``whitening``: the pair's point_sqrt_info at
+    ``values`` with unit weights, if already computed."""
+    keep = w > 0
+    if keep.sum() < 3:
+        return None
+    if not keep.all():
+        o = o.subset(keep)
+    if whitening is not None:
+        W = whitening[keep] * np.sqrt(w[keep])[:, None, None]
+    else:
+        T_a, T_b = values.atPose3(keys.pose(o.view_a)), values.atPose3(keys.pose(o.view_b))
+        W = point_sqrt_info(o, Ks[o.view_a], Ks[o.view_b], T_a.between(T_b),
+                            values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)), noise,
+                            w[keep])
+    k = scene_keys(o, keys, noise)
+    basis = (o.basis_a, o.basis_b) if noise.depth_correction_sigma > 0 else (None, None)
+    blocks = [None] * len(k)
+    e = match3d_error(Match3DMeasurement(o.pts_a, o.pts_b, W, *basis), _FactorKeys(k), values, blocks)
+    return k, o, W, np.hstack(blocks), e
 
 
 def robot_views(keys, views) -> list:

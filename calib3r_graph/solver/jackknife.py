@@ -137,14 +137,15 @@ def linearised_jackknife(sol, system=None) -> tuple[dict, dict | None]:
     return report, influential_pose(full, fits)
 
 
-def factor_system(graph, values) -> tuple[np.ndarray, dict, list]:
+def factor_system(graph, values, offsets=None) -> tuple[np.ndarray, dict, list]:
     """(H, offsets, factors) of ``graph`` linearised at ``values``: the dense information matrix
     ``H = sum_k A_k^T A_k`` (whitened), {key: (first column, dimension)} in key order, and per factor
-    (keys, its columns, A^T A, A^T b, b^T b), from each factor's augmented information (no tall A)."""
+    (keys, its columns, A^T A, A^T b, b^T b), from each factor's augmented information (no tall A).
+    ``offsets``: another graph's column layout (one that holds this graph's keys), for a part of it."""
     from calib3r_graph.solver.systematic import key_offsets
 
     lin = graph.linearize(values)
-    offsets = key_offsets(graph, values)
+    offsets = key_offsets(graph, values) if offsets is None else offsets
     col = sum(d for _, d in offsets.values())
     H = np.zeros((col, col))
     factors = []
