@@ -295,11 +295,17 @@ def two_view_geometry(fa: Features, fb: Features, K_a, K_b, opt: PairwiseOptions
     matching); the pose is still estimated from the images alone."""
     if len(fa.desc) < opt.min_inliers or len(fb.desc) < opt.min_inliers:
         return None
-    S = fa.desc @ fb.desc.T  # RootSIFT: |a - b|^2 = 2 - 2 a.b
     if prior_E is None:
+        S = fa.desc @ fb.desc.T  # RootSIFT: |a - b|^2 = 2 - 2 a.b
         ia, ib, r = _mutual_ratio(S, opt.ratio)
     else:
-        ia, ib, r = guided_matches(fa, fb, K_a, K_b, prior_E, opt.ratio, prior_px, S)
+        # The similarities (one (n_a, n_b) product, ~40 ms at 4000 features) on a second thread while
+        # the prior's epipolar band is searched (~30 ms): the same arrays, so the same matches.
+        with ThreadPoolExecutor(1) as pool:
+            S = pool.submit(np.matmul, fa.desc, fb.desc.T)
+            i, j = guided_candidates(fa, fb, K_a, K_b, prior_E, prior_px)
+            S = S.result()
+        ia, ib, r = _sparse_mutual_ratio(i, j, S[i, j], opt.ratio)
     stats = {"putative": int(len(ia)), "robot_guided": prior_E is not None}
     if len(ia) < opt.min_inliers:
         return None
@@ -350,44 +356,92 @@ def _homogeneous_rays(K, uv):
 def guided_matches(fa: Features, fb: Features, K_a, K_b, E, ratio, max_px, S=None):
     """Mutual ratio-test matches among the pairs within ``max_px`` of each other's epipolar line
     (``S``: the descriptor similarities, if already computed)."""
-    xa, xb = _homogeneous_rays(K_a, fa.uv), _homogeneous_rays(K_b, fb.uv)
-    la = xa @ E.T  # epipolar lines in b of a's points (normalised coordinates)
-    lb = xb @ E  # in a of b's points
-    f = 0.5 * (K_a[0, 0] + K_b[0, 0])
-    # Candidates: b's points within max_px of a's epipolar line (a few per mille of all pairs:
-    # the rest works on the list), then the same for b's line in a.
-    thr = (max_px / f * np.hypot(la[:, 0], la[:, 1])).astype(np.float32)
-    alg = la.astype(np.float32) @ xb.T.astype(np.float32)  # x_b^T E x_a
-    alg *= alg
-    i, j = np.nonzero(alg < (thr * thr)[:, None])
-    e = np.einsum("nk,nk->n", xb[j], la[i])
-    ok = np.abs(e) * f / np.hypot(lb[j, 0], lb[j, 1]) < max_px
-    i, j = i[ok], j[ok]
+    i, j = guided_candidates(fa, fb, K_a, K_b, E, max_px)
     sim = S[i, j] if S is not None else np.einsum("nk,nk->n", fa.desc[i], fb.desc[j])
     return _sparse_mutual_ratio(i, j, sim, ratio)
 
 
+def guided_candidates(fa: Features, fb: Features, K_a, K_b, E, max_px):
+    """(i, j), row-major: the feature pairs within ``max_px`` of each other's epipolar line under E."""
+    xa, xb = _homogeneous_rays(K_a, fa.uv), _homogeneous_rays(K_b, fb.uv)
+    la = xa @ E.T  # epipolar lines in b of a's points (normalised coordinates)
+    lb = xb @ E  # in a of b's points
+    f = 0.5 * (K_a[0, 0] + K_b[0, 0])
+    return _epipolar_candidates(la, lb, xb, f, max_px)
+
+
+def _epipolar_candidates(la, lb, xb, f, max_px, rows=128):
+    """(i, j), row-major: b's points within ``max_px`` of a's epipolar line (a few per mille of all
+    pairs, tested on the float32 algebraic error x_b^T E x_a), then the same for b's line in a (float64,
+    on that list). The dense test runs on ``rows`` of a's points at a time, so its (rows, n_b) block
+    stays in cache: the same products (one matrix product of two or more rows per block, each entry
+    the same length-3 dot product as in one (n_a, n_b) product; a lone row would be a matrix-vector
+    product, summed otherwise, so the last block never has one row), the same list, about four times
+    as fast as one product and a 2-d np.nonzero on a 4000-feature pair."""
+    thr = (max_px / f * np.hypot(la[:, 0], la[:, 1])).astype(np.float32)
+    thr *= thr
+    la32, xbT32 = la.astype(np.float32), xb.T.astype(np.float32)
+    bounds = list(range(0, len(la), rows)) + [len(la)]
+    if len(bounds) > 2 and bounds[-1] - bounds[-2] == 1:
+        bounds.pop(-2)
+    out_i, out_j = [], []
+    for r0, r1 in zip(bounds[:-1], bounds[1:]):
+        alg = la32[r0:r1] @ xbT32  # x_b^T E x_a
+        alg *= alg
+        k = np.flatnonzero(alg < thr[r0:r1, None])  # a 2-d np.nonzero is ~4x slower
+        i = k // alg.shape[1]
+        j = k - i * alg.shape[1]
+        e = np.einsum("nk,nk->n", xb[j], la[r0 + i])
+        ok = np.abs(e) * f / np.hypot(lb[j, 0], lb[j, 1]) < max_px
+        out_i.append(r0 + i[ok])
+        out_j.append(j[ok])
+    if not out_i:
+        return np.zeros(0, np.intp), np.zeros(0, np.intp)
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
 def _sparse_mutual_ratio(i, j, sim, ratio):
     """Mutual best matches passing the ratio test, among candidate pairs (i, j) with similarity sim.
-    A lone candidate is compared with the largest possible distance (2)."""
+    A lone candidate is compared with the largest possible distance (2). A row's best is its first
+    candidate of the highest similarity, a column's likewise; computed by segment reductions over
+    the rows (the candidates come row-major) and a stable sort of the columns, not two full lexsorts
+    (a rescue's band holds ~300k candidates)."""
     if len(i) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    o = np.lexsort((-sim, i))
-    i, j, sim = i[o], j[o], sim[o]
-    first = np.r_[True, i[1:] != i[:-1]]
-    has_second = np.r_[i[1:] == i[:-1], False] & first
-    s1 = sim[first]
+    if np.any(i[1:] < i[:-1]):
+        o = np.argsort(i, kind="stable")
+        i, j, sim = i[o], j[o], sim[o]
+    n = len(i)
+    pos = np.arange(n)
+    starts = np.flatnonzero(np.r_[True, i[1:] != i[:-1]])
+    first, s1, rest = _segment_best(sim, starts, pos)
     s2 = np.full(len(s1), -1.0)
-    s2[has_second[first]] = sim[np.flatnonzero(has_second) + 1]
+    has_second = np.diff(np.r_[starts, n]) > 1
+    s2[has_second] = rest[has_second]
     bi, bj = i[first], j[first]
     r = np.sqrt(np.maximum(2 - 2 * s1, 0)) / np.maximum(np.sqrt(np.maximum(2 - 2 * s2, 0)), 1e-9)
     # mutual: the best a of each b
-    o = np.lexsort((-sim, j))
-    col_first = np.r_[True, j[o][1:] != j[o][:-1]]
+    o = np.argsort(j.astype(np.int32) if j.max() < 2 ** 31 else j, kind="stable")
+    js = j[o]
+    col_starts = np.flatnonzero(np.r_[True, js[1:] != js[:-1]])
+    col_first, _, _ = _segment_best(sim[o], col_starts, pos, need_rest=False)
     best_a = np.full(j.max() + 1, -1)
-    best_a[j[o][col_first]] = i[o][col_first]
+    best_a[js[col_starts]] = i[o][col_first]
     keep = (best_a[bj] == bi) & (r < ratio)
     return bi[keep], bj[keep], r[keep]
+
+
+def _segment_best(x, starts, pos, need_rest=True):
+    """Per segment of ``x`` (segments begin at ``starts``): the position of its first maximum, the
+    maximum, and the maximum of the other entries (-inf for a segment of one)."""
+    top = np.maximum.reduceat(x, starts)
+    seg = np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(x)]))
+    first = np.minimum.reduceat(np.where(x == top[seg], pos, len(x)), starts)
+    if not need_rest:
+        return first, top, None
+    rest = x.copy()
+    rest[first] = -np.inf
+    return first, top, np.maximum.reduceat(rest, starts)
 
 
 def refine_pose(R, t, xa, xb, thr):
@@ -500,14 +554,14 @@ def _robot_checks(geoms: dict, base_T_ee: dict, opt: PairwiseOptions, info: dict
             cand = [cand[i] for i in rng.choice(len(cand), 300, replace=False)]
         I, J = np.array(cand).T
         apart = np.linalg.norm(np.cross(na[I], na[J]), axis=1) >= np.sin(np.radians(10))  # one call, not per pair
-        for i, j, ok in zip(I, J, apart):
-            if not ok:
-                continue  # parallel axes do not fix a rotation
-            R_X, _ = hand_eye_rotation(alphas[[i, j]], betas[[i, j]])
-            err = np.degrees(np.linalg.norm(alphas - betas @ R_X.T, axis=1))
-            count = int((err < opt.rotation_tol_deg).sum())
-            if count > best_count:
-                best, best_count = R_X, count
+        I, J = I[apart], J[apart]  # parallel axes do not fix a rotation
+        if len(I):  # the first hypothesis with the most inliers (and at least one)
+            R_all = _hand_eye_rotations(alphas[np.c_[I, J]], betas[np.c_[I, J]])
+            err = np.degrees(np.linalg.norm(alphas[None] - betas[None] @ R_all.transpose(0, 2, 1), axis=2))
+            count = (err < opt.rotation_tol_deg).sum(1)
+            k = int(np.argmax(count))
+            if count[k] > best_count:
+                best, best_count = R_all[k], int(count[k])
         if best is not None:
             err = np.degrees(np.linalg.norm(alphas - betas @ best.T, axis=1))
             inl = err < opt.rotation_tol_deg
@@ -521,6 +575,17 @@ def _robot_checks(geoms: dict, base_T_ee: dict, opt: PairwiseOptions, info: dict
                     kept.pop((a, b))
             _translation_check(kept, base_T_ee, R_X, opt, info, hand_eye, rng)
     return kept
+
+
+def _hand_eye_rotations(alphas, betas):
+    """``geometry.hand_eye_rotation``'s R_X for a stack of hypotheses, alphas and betas (K, n, 3): the
+    same operations (Kabsch: the SVD of sum alpha beta^T, projected onto SO(3)) on stacked arrays,
+    one call each instead of K (the RANSAC's ~300 hypotheses cost 17 ms one by one)."""
+    U, _, Vt = np.linalg.svd(np.einsum("kni,knj->kij", alphas, betas))
+    D = np.zeros((len(U), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1
+    D[:, 2, 2] = np.sign(np.linalg.det(U @ Vt))
+    return U @ D @ Vt
 
 
 def _translation_check(kept: dict, base_T_ee: dict, R_X, opt: PairwiseOptions, info: dict, hand_eye: dict, rng):
@@ -562,14 +627,11 @@ def _translation_check(kept: dict, base_T_ee: dict, R_X, opt: PairwiseOptions, i
     rotating = np.flatnonzero(np.linalg.norm(M, axis=(1, 2)) > np.radians(3))
     if len(rotating) < 3:
         return
-    best, best_count = None, -1
-    for _ in range(200):
-        idx = rng.choice(rotating, 3, replace=False)
-        t_X = fit(idx)
-        err, _ = directions_error(t_X)
-        count = int((err < opt.translation_tol_deg).sum())
-        if count > best_count:
-            best, best_count = t_X, count
+    T = np.array([fit(rng.choice(rotating, 3, replace=False)) for _ in range(200)])
+    # every hypothesis' directions at once (the same einsum per hypothesis); the first with the most inliers
+    pred = np.einsum("nij,kj->kni", M, T) + tA
+    cos = (pred * tB).sum(2) / np.maximum(np.linalg.norm(pred, axis=2), 1e-12)
+    best = T[int(np.argmax((np.degrees(np.arccos(np.clip(cos, -1, 1))) < opt.translation_tol_deg).sum(1)))]
     err, _ = directions_error(best)
     inl = np.flatnonzero(err < opt.translation_tol_deg)
     if len(inl) >= 3:
@@ -635,6 +697,13 @@ def _angle_conf(angle):
     return np.clip(angle / np.radians(FULL_CONF_ANGLE_DEG), 0.05, 1.0)
 
 
+def _median_angle_deg(g: PairGeometry) -> float:
+    """The pair's median triangulation angle (deg): ``two_view_geometry`` wrote exactly this number
+    (``np.degrees(np.median(angle))`` of the angles it kept) into its stats; computed where absent."""
+    m = g.stats.get("median_angle_deg")
+    return float(np.degrees(np.median(g.angle))) if m is None else m
+
+
 def view_depths(vid, feats: Features, geoms: dict, opt: PairwiseOptions):
     """Per-keypoint depth of one view from its pairs, every pair brought to one unit.
 
@@ -642,7 +711,7 @@ def view_depths(vid, feats: Features, geoms: dict, opt: PairwiseOptions):
     pair's unit to the view's — or None when no pair gives depth."""
     entries = []  # (pair, kp ids, depth, angle-conf)
     for ab, g in geoms.items():
-        if vid not in ab or np.degrees(np.median(g.angle)) < opt.min_pair_angle_deg:
+        if vid not in ab or _median_angle_deg(g) < opt.min_pair_angle_deg:
             continue
         idx, d = (g.ia, g.depth_a) if ab[0] == vid else (g.ib, g.depth_b)
         entries.append((ab, feats.kp_id[idx], d, _angle_conf(g.angle)))
@@ -652,9 +721,10 @@ def view_depths(vid, feats: Features, geoms: dict, opt: PairwiseOptions):
     # the most other pairs agree with (a wrong geometry with many points must not set the unit).
     order = sorted(range(len(entries)), key=lambda k: -entries[k][3].sum())
     n_kp = int(feats.kp_id.max()) + 1 if len(feats.kp_id) else 0
+    prep = _AlignInputs(entries, n_kp)
     best = None
     for ref in order[:3]:
-        scales = _align(vid, entries, ref, order, n_kp, opt)
+        scales = _align(vid, entries, ref, order, n_kp, opt, prep)
         weight = sum(entries[k][3].sum() for k in range(len(entries)) if entries[k][0] in scales)
         if best is None or weight > best[0]:
             best = (weight, scales)
@@ -679,9 +749,22 @@ def view_depths(vid, feats: Features, geoms: dict, opt: PairwiseOptions):
     return ids_all[ok], depth[0][ok].astype(np.float64), conf[0][ok].astype(np.float64), scales
 
 
-def _align(vid, entries, ref, order, n_kp, opt):
+class _AlignInputs:
+    """What :func:`_align` reads of a view's entries, computed once for its three reference tries:
+    each entry's log depths and its kp-id counts (P, n_kp), so that the keypoints each pending pair
+    shares with those already aligned are one matrix-vector product, not one gather per pair and
+    step."""
+
+    def __init__(self, entries, n_kp):
+        self.logd = [np.log(e[2]) for e in entries]
+        self.counts = (np.array([np.bincount(e[1], minlength=n_kp) for e in entries], np.float64) if n_kp
+                       else np.zeros((len(entries), 0)))
+
+
+def _align(vid, entries, ref, order, n_kp, opt, prep=None):
     """{pair: log scale into ref's unit} of the pairs that agree with ``ref``, greedily: the pair
-    sharing most keypoints with those already aligned goes next."""
+    sharing most keypoints with those already aligned goes next (ties: the earlier in ``order``)."""
+    prep = prep or _AlignInputs(entries, n_kp)
     acc_w = np.zeros(n_kp)
     acc_logd = np.zeros(n_kp)
     scales = {}
@@ -689,21 +772,23 @@ def _align(vid, entries, ref, order, n_kp, opt):
     def add(k, log_s):
         ab, ids, d, c = entries[k]
         np.add.at(acc_w, ids, c)
-        np.add.at(acc_logd, ids, c * (np.log(d) + log_s))
+        np.add.at(acc_logd, ids, c * (prep.logd[k] + log_s))
         scales[ab] = log_s
 
     add(ref, 0.0)
-    pending = set(order) - {ref}
-    while pending:
-        shared = {k: int((acc_w[entries[k][1]] > 0).sum()) for k in pending}
-        k = max(pending, key=lambda j: (shared[j], -order.index(j)))
-        if shared[k] < opt.min_shared:
+    pending = np.array([k for k in order if k != ref], int)  # in order: argmax's first maximum breaks ties
+    while len(pending):
+        shared = (prep.counts @ (acc_w > 0))[pending]
+        at = int(np.argmax(shared))
+        k = int(pending[at])
+        pending = pending[pending != k]
+        if shared[at] < opt.min_shared:
             break  # nothing left overlaps the aligned pairs
-        pending.discard(k)
         ab, ids, d, c = entries[k]
         m = acc_w[ids] > 0
-        diff = acc_logd[ids[m]] / acc_w[ids[m]] - np.log(d[m])
-        w = c[m] * np.minimum(acc_w[ids[m]], 1.0)
+        im = ids[m]
+        diff = acc_logd[im] / acc_w[im] - prep.logd[k][m]
+        w = c[m] * np.minimum(acc_w[im], 1.0)
         log_s = _weighted_median(diff, w)
         mad = 1.4826 * _weighted_median(np.abs(diff - log_s), w)
         if mad > opt.max_scale_mad:
@@ -721,6 +806,35 @@ def _weighted_median_columns(x, w):
     cw = np.cumsum(ws, axis=0)
     k = np.argmax(cw >= 0.5 * cw[-1:], axis=0)
     return xs[k, np.arange(x.shape[1])]
+
+
+def _unchanged_view(hit, feats: Features, res):
+    """(ViewPrediction, info) of the last aggregation of this view where ``res`` (view_depths' result,
+    its pairs having changed) gives the same keypoints, depths and confidences: the depth maps would
+    be the same arrays, so the same object is kept (no new maps, no re-sampled matches). Else None."""
+    if hit is None or hit[0] is not feats or hit[3] is None or hit[2] is None or res is None:
+        return None
+    if not all(x.shape == y.shape and np.array_equal(x, y) for x, y in zip(hit[2][:3], res[:3])):
+        return None
+    view, view_info = hit[3]
+    return view, (view_info if view_info["pairs"] == len(res[3]) else {**view_info, "pairs": len(res[3])})
+
+
+def _pair_end(cache, ab, end, g, feats: Features, view):
+    """One end of a pair's match check: its matches' pixels, whether the view's depth map has depth
+    there (all four neighbours), and the log ratio of that depth to the pair's own. Kept while the
+    pair's geometry and that view's prediction are the same objects: a new depth map at one end
+    re-samples only that end."""
+    key = ("end", *ab, end)
+    hit = cache.get(key)
+    if hit is not None and hit[0] is g and hit[1] is view:
+        return hit[2]
+    uv = feats.uv[g.ia if end == 0 else g.ib]
+    d, ok = sample_bilinear(view.depth, uv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.log(d) - np.log(g.depth_a if end == 0 else g.depth_b)
+    cache[key] = (g, view, (uv, ok, lr))
+    return cache[key][2]
 
 
 def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons: dict | None = None,
@@ -744,8 +858,9 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
                 ab == ab2 and g is g2 for (ab, g), (ab2, g2) in zip(hit[1], mine)):
             res, done = hit[2], hit[3]
         else:  # view_depths reads only the view's own pairs, in geoms' order
-            res, done = view_depths(vid, feats[vid], dict(mine), opt), None
-            cache[("view", vid)] = (feats[vid], mine, res, None)
+            res = view_depths(vid, feats[vid], dict(mine), opt)
+            done = _unchanged_view(hit, feats[vid], res)
+            cache[("view", vid)] = (feats[vid], mine, res, done)
         if res is None or len(res[0]) < opt.min_view_points:
             n = 0 if res is None else len(res[0])
             info["unusable"].append(vid)
@@ -770,10 +885,12 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
         x0, y0 = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         ok = (x0 >= 0) & (y0 >= 0) & (x0 < cam.width - 1) & (y0 < cam.height - 1)
         order = np.argsort(conf_kp[ok])  # where splats overlap, the most confident one wins
+        at = y0[ok][order] * cam.width + x0[ok][order]  # flat pixel index, written in the same order
+        d_kp, c_kp = depth_kp[ok][order], conf_kp[ok][order]
         for dx in (0, 1):
             for dy in (0, 1):
-                depth[y0[ok][order] + dy, x0[ok][order] + dx] = depth_kp[ok][order]
-                conf[y0[ok][order] + dy, x0[ok][order] + dx] = conf_kp[ok][order]
+                depth.ravel()[at + (dy * cam.width + dx)] = d_kp
+                conf.ravel()[at + (dy * cam.width + dx)] = c_kp
         views[vid] = ViewPrediction(depth, conf, cam.K)
         info["views"][vid] = {"points": int(ok.sum()), "pairs": len(scales)}
         cache[("view", vid)] = cache[("view", vid)][:3] + ((views[vid], info["views"][vid]),)
@@ -790,14 +907,11 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
                 cand[(a, b)], scores[(a, b)] = hit[3], len(hit[3].conf)
             continue
         cache[("pair", a, b)] = (g, views[a], views[b], None)
-        uv_a, uv_b = feats[a].uv[g.ia], feats[b].uv[g.ib]
-        d_a, ok_a = sample_bilinear(views[a].depth, uv_a)
-        d_b, ok_b = sample_bilinear(views[b].depth, uv_b)
+        uv_a, ok_a, la = _pair_end(cache, (a, b), 0, g, feats[a], views[a])
+        uv_b, ok_b, lb = _pair_end(cache, (a, b), 1, g, feats[b], views[b])
         ok = ok_a & ok_b
         if ok.sum() < 20:
             continue
-        with np.errstate(divide="ignore", invalid="ignore"):
-            la, lb = np.log(d_a) - np.log(g.depth_a), np.log(d_b) - np.log(g.depth_b)
         keep = ok.copy()
         keep[ok] = ((np.abs(la[ok] - np.median(la[ok])) < opt.max_depth_spread)
                     & (np.abs(lb[ok] - np.median(lb[ok])) < opt.max_depth_spread))

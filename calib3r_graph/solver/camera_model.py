@@ -135,7 +135,7 @@ def pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps):
     moves it. The residual ``e_p = g_a - (s_b / s_a) R_ab g_b - t_ab / s_a`` (factors.match3d, with
     ``g = (1 + phi . c) P`` the corrected lifted point) is affine in the lifted points, so a change
     ``d`` of them changes it by ``(1 + phi_a . c_a) d_a - (s_b / s_a) (1 + phi_b . c_b) R_ab d_b``
-    exactly; :func:`_lift_derivative`'s ``d`` has one non-zero coordinate per parameter."""
+    exactly; :func:`_lift_change` gives ``d``'s one non-zero coordinate per parameter."""
     k, o, W, J, e = lin
     js = _moved_by(o, thetas)
     if not js:
@@ -147,28 +147,25 @@ def pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps):
     if noise.depth_correction_sigma > 0:
         alpha = alpha + o.basis_a @ depth_correction(values, keys, o.view_a)
         beta = beta * (1 + o.basis_b @ depth_correction(values, keys, o.view_b))
+    WR = W @ R_ab if cb in (t[0] for t in thetas) else None  # b's changes, rotated into a's frame and whitened
     dE = np.zeros((len(o), 3, len(thetas)))
     for j in js:
         c, p, _ = thetas[j]
         axis = p % 2
         if ca == c:
-            d_a = _lift_derivative(o.pts_a, Ks[o.view_a], p, steps[j][o.view_a])[:, axis]
-            dE[:, :, j] += W[:, :, axis] * (alpha * d_a)[:, None]
+            dE[:, :, j] += W[:, :, axis] * (alpha * _lift_change(o.pts_a, Ks[o.view_a], p, steps[j][o.view_a]))[:, None]
         if cb == c:
-            d_b = _lift_derivative(o.pts_b, Ks[o.view_b], p, steps[j][o.view_b])[:, axis]
-            dE[:, :, j] -= (W @ R_ab[:, axis]) * (beta * d_b)[:, None]
+            dE[:, :, j] -= WR[:, :, axis] * (beta * _lift_change(o.pts_b, Ks[o.view_b], p, steps[j][o.view_b]))[:, None]
     dE = dE.reshape(len(e), len(thetas))
     return k, J.T @ dE, dE.T @ dE, dE.T @ e
 
 
-def _lift_derivative(pts, K, p, h):
-    """The change of points lifted as ``z K^-1 [u, v, 1]`` (so ``x = (u - cx) z / fx``) when
-    parameter ``p`` of the grid's K moves by ``h`` (first order): fx: -x h / fx, cx: -z h / fx,
-    and likewise y with fy, cy."""
+def _lift_change(pts, K, p, h):
+    """How points lifted as ``z K^-1 [u, v, 1]`` (so ``x = (u - cx) z / fx``) change when parameter
+    ``p`` of the grid's K moves by ``h`` (first order): only x for fx and cx (-x h / fx, -z h / fx),
+    only y for fy and cy likewise; returns that one coordinate's change (N,)."""
     axis = p % 2
-    d = np.zeros_like(pts)
-    d[:, axis] = -(pts[:, axis] if p < 2 else pts[:, 2]) * h / K[axis, axis]
-    return d
+    return -(pts[:, axis] if p < 2 else pts[:, 2]) * h / K[axis, axis]
 
 
 def _grid_steps(Ks, cameras, cam, p, h) -> dict:
