@@ -49,14 +49,9 @@ def replay(session: LiveSession, order: str | list, seed: int = 0, on_update=Non
         up = session.add_frame(f)
         used.append(f)
         updates.append(up)
-        if on_update:
-            on_update(up)
-        if stop_at_target and up.done:
-            break
-        if todo is None:
-            rest = [g for g in frames if g not in used]
-            if not rest:
-                break
+        rest = [g for g in frames if g not in used]
+        if todo is None and rest and not (stop_at_target and up.done):
+            tg = time.perf_counter()
             nxt = None
             if session.sol is not None and up.ee_T_cam and f in session.base_T_ee:
                 try:
@@ -69,7 +64,12 @@ def replay(session: LiveSession, order: str | list, seed: int = 0, on_update=Non
                     log.info("guided: no score (%s); the most different rotation instead", e)
             if nxt is None:
                 nxt = _most_different(session, used, rest)
-        elif not todo:
+            up.guidance_s += time.perf_counter() - tg  # the guidance over the recorded frames is this update's
+        if on_update:
+            on_update(up)
+        if stop_at_target and up.done:
+            break
+        if (todo is None and not rest) or (todo is not None and not todo):
             break
     if len(session.base_T_ee) >= 3:
         up = session.finish()
