@@ -381,6 +381,7 @@ def _epipolar_candidates(la, lb, xb, f, max_px, rows=128):
     thr = (max_px / f * np.hypot(la[:, 0], la[:, 1])).astype(np.float32)
     thr *= thr
     la32, xbT32 = la.astype(np.float32), xb.T.astype(np.float32)
+    hb = np.hypot(lb[:, 0], lb[:, 1])  # per point of b, gathered below
     bounds = list(range(0, len(la), rows)) + [len(la)]
     if len(bounds) > 2 and bounds[-1] - bounds[-2] == 1:
         bounds.pop(-2)
@@ -392,7 +393,7 @@ def _epipolar_candidates(la, lb, xb, f, max_px, rows=128):
         i = k // alg.shape[1]
         j = k - i * alg.shape[1]
         e = np.einsum("nk,nk->n", xb[j], la[r0 + i])
-        ok = np.abs(e) * f / np.hypot(lb[j, 0], lb[j, 1]) < max_px
+        ok = np.abs(e) * f / hb[j] < max_px
         out_i.append(r0 + i[ok])
         out_j.append(j[ok])
     if not out_i:
@@ -421,7 +422,7 @@ def _sparse_mutual_ratio(i, j, sim, ratio):
     bi, bj = i[first], j[first]
     r = np.sqrt(np.maximum(2 - 2 * s1, 0)) / np.maximum(np.sqrt(np.maximum(2 - 2 * s2, 0)), 1e-9)
     # mutual: the best a of each b
-    o = np.argsort(j.astype(np.int32) if j.max() < 2 ** 31 else j, kind="stable")
+    o = np.argsort(j.astype(np.uint16) if j.max() < 2 ** 16 else j, kind="stable")  # uint16: a radix sort, 10x
     js = j[o]
     col_starts = np.flatnonzero(np.r_[True, js[1:] != js[:-1]])
     col_first, _, _ = _segment_best(sim[o], col_starts, pos, need_rest=False)
@@ -448,12 +449,13 @@ def refine_pose(R, t, xa, xb, thr):
     """(R, t) minimising the Sampson error of the matches (Huber, scale thr), |t| = 1."""
     from scipy.optimize import least_squares
 
+    ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]  # once, not per evaluation
+
     def res(p):
         Rk = cv2.Rodrigues(p[:3])[0] @ R
         tk = t + p[3:]
         tk = tk / np.linalg.norm(tk)
         E = skew(tk) @ Rk
-        ha, hb = np.c_[xa, np.ones(len(xa))], np.c_[xb, np.ones(len(xb))]
         Ea, Eb = ha @ E.T, hb @ E
         num = (hb * Ea).sum(1)
         return num / np.sqrt(Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2)
@@ -728,6 +730,8 @@ def view_depths(vid, feats: Features, geoms: dict, opt: PairwiseOptions):
         weight = sum(entries[k][3].sum() for k in range(len(entries)) if entries[k][0] in scales)
         if best is None or weight > best[0]:
             best = (weight, scales)
+        if len(scales) == len(entries):
+            break  # every pair aligned: no later reference can weigh more (a sum of fewer positive terms)
     scales = best[1]
     # Eq. 1 on the keypoints, after dropping entries far from each keypoint's weighted median.
     used = [k for k in range(len(entries)) if entries[k][0] in scales]
@@ -846,7 +850,9 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
     ``cache`` (a dict the caller keeps, e.g. a live session adding frames): a view whose features and
     pair geometries (the same objects, in the same order) are those of the last call is not
     aggregated again, and a pair whose geometry and both views are unchanged keeps its matches;
-    the results are the same objects as before, so a caller can tell what changed by identity."""
+    the results are the same objects as before, so a caller can tell what changed by identity. A
+    view whose pairs changed but whose keypoint depths come out the same keeps its prediction too,
+    and a pair re-samples only the end whose prediction is new."""
     known_reasons = known_reasons or {}
     cache = {} if cache is None else cache
     views, info = {}, {"views": {}, "unusable": [], "reasons": {}}

@@ -24,10 +24,6 @@ from calib3r_graph.solver.graph import point_sqrt_info
 from factors.hand_eye import robot_pose_noise_covariance
 
 MIN_VISIBLE = 30
-# Which existing view a candidate overlaps most is counted on every k-th of each view's scene points,
-# at most this many (a view's points repeat over its pairs: about 8000 at 10 pairs); the visible
-# points of the chosen view are then counted on all of them.
-OVERLAP_SAMPLE = 500
 
 
 @dataclass
@@ -64,11 +60,25 @@ def scene_points_by_view(sol) -> dict:
     return {v: _scene_points(sol, v) for v in sol.base_T_cam if split_view_id(v)[0] == ref}
 
 
-def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None):
+def distinct_points(points: dict) -> dict:
+    """{view: (its distinct scene points, how often each occurs)} of :func:`scene_points_by_view`'s
+    points: a view's points repeat once per pair that matched the same keypoint (about 8000 points
+    at 10 pairs on rwhe_kuka_1, a few distinct thousand), and equal points project alike, so the
+    visible count is the sum of the counts of the distinct points seen."""
+    out = {}
+    for v, P in points.items():
+        U, n = np.unique(P, axis=0, return_counts=True) if len(P) else (P, np.zeros(0, int))
+        out[v] = (U, n)
+    return out
+
+
+def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None,
+                      distinct=None):
     """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
     overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
     with its robot pose factor, and a 3D match factor to the existing view that sees most of the
-    same scene (see the module's docstring). ``points``: :func:`scene_points_by_view` of ``sol``."""
+    same scene (see the module's docstring). ``points``: :func:`scene_points_by_view` of ``sol``;
+    ``distinct``: :func:`distinct_points` of them (the same choice, counted on fewer points)."""
     from calib3r_graph.solver.observations import PairObservations
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)
@@ -80,22 +90,25 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
     cov = robot_pose_noise_covariance(X, np.radians(noise.robot_sigma_deg), noise.robot_sigma_mm * 1e-3)
     out = [factors.make_robot_pose_factor(E, [keys.hand_eye(ref_cam), k_pose], gtsam.noiseModel.Gaussian.Covariance(cov))]
     values.insert(k_pose, C)
+
     def seen(v, P):  # (visible, P, Q: in the candidate camera, uv)
         K, (h, w) = preds.views[v].K, preds.views[v].depth.shape
         Q = P @ C.between(sol.base_T_cam[v]).rotation().matrix().T + C.between(sol.base_T_cam[v]).translation()
         uv = Q[:, :2] / np.maximum(Q[:, 2:3], 1e-9) @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
         return (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h), P, Q, uv
 
-    best, best_share = None, -1.0
+    best, best_count = None, -1
     for v in sol.base_T_cam:
         if split_view_id(v)[0] != ref_cam:
             continue
-        P = points[v] if points is not None else _scene_points(sol, v)
-        if len(P) == 0:
-            continue
-        share = seen(v, P[::-(-len(P) // OVERLAP_SAMPLE)])[0].mean() * len(P)
-        if share > best_share:
-            best, best_share = v, share
+        if distinct is not None:
+            U, n = distinct[v]
+            count = int(n[seen(v, U)[0]].sum()) if len(U) else 0
+        else:
+            P = points[v] if points is not None else _scene_points(sol, v)
+            count = int(seen(v, P)[0].sum()) if len(P) else 0
+        if count > best_count:  # (a view with no points never wins: MIN_VISIBLE below)
+            best, best_count = v, count
     best_pts = None if best is None else seen(best, points[best] if points is not None else _scene_points(sol, best))
     n_vis = 0 if best_pts is None else int(best_pts[0].sum())
     if n_vis < MIN_VISIBLE:
@@ -333,10 +346,12 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     rng = np.random.default_rng(seed)
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     points = scene_points_by_view(sol)
+    distinct = distinct_points(points)
     proposals, parts = [], []
     loo = _leave_one_out(sol, len(frames))
     for kind, E, frame in candidates:
-        fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points)
+        fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points,
+                                                  distinct=distinct)
         S_out = S[np.ix_(out_idx, out_idx)]
         D, U = None, None
         if best is not None:

@@ -1,0 +1,130 @@
+"""The pairwise frontend's faster steps give the same numbers as the straightforward ones they
+replaced (frontends/pairwise.py): the epipolar-band candidates (blocked, row-major), the sparse
+mutual ratio test (segment reductions, not lexsorts), the RANSAC's stacked hand-eye rotations, and
+the aggregation's cache (a view whose depths come out the same keeps its prediction object). Every
+comparison is exact (np.array_equal), not to a tolerance: the live result's equality with the batch
+``solve`` rests on it."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from calib3r_graph.frontends import pairwise as pw
+from calib3r_graph.io.dataset import opencv_camera
+from calib3r_graph.geometry import hand_eye_rotation
+from factors._lie import skew
+
+
+def _dense_candidates(la, lb, xb, f, max_px):
+    """The band test as one (n_a, n_b) product and a 2-d nonzero (the former guided_matches)."""
+    thr = (max_px / f * np.hypot(la[:, 0], la[:, 1])).astype(np.float32)
+    alg = la.astype(np.float32) @ xb.T.astype(np.float32)
+    alg *= alg
+    i, j = np.nonzero(alg < (thr * thr)[:, None])
+    e = np.einsum("nk,nk->n", xb[j], la[i])
+    ok = np.abs(e) * f / np.hypot(lb[j, 0], lb[j, 1]) < max_px
+    return i[ok], j[ok]
+
+
+def _lexsort_mutual_ratio(i, j, sim, ratio):
+    """The sparse mutual ratio test by two lexsorts (the former _sparse_mutual_ratio)."""
+    o = np.lexsort((-sim, i))
+    i, j, sim = i[o], j[o], sim[o]
+    first = np.r_[True, i[1:] != i[:-1]]
+    has_second = np.r_[i[1:] == i[:-1], False] & first
+    s1 = sim[first]
+    s2 = np.full(len(s1), -1.0)
+    s2[has_second[first]] = sim[np.flatnonzero(has_second) + 1]
+    bi, bj = i[first], j[first]
+    r = np.sqrt(np.maximum(2 - 2 * s1, 0)) / np.maximum(np.sqrt(np.maximum(2 - 2 * s2, 0)), 1e-9)
+    o = np.lexsort((-sim, j))
+    col_first = np.r_[True, j[o][1:] != j[o][:-1]]
+    best_a = np.full(j.max() + 1, -1)
+    best_a[j[o][col_first]] = i[o][col_first]
+    keep = (best_a[bj] == bi) & (r < ratio)
+    return bi[keep], bj[keep], r[keep]
+
+
+def _random_rotation(rng):
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _equal(xs, ys):
+    return all(x.dtype == y.dtype and np.array_equal(x, y) for x, y in zip(xs, ys))
+
+
+def test_epipolar_band_candidates_are_those_of_the_dense_test():
+    """Blocks of 128 rows, a last block of one row folded into the one before (257 rows), and a
+    camera pair whose epipole is in the image: the same (i, j), in the same order."""
+    rng = np.random.default_rng(0)
+    K = np.array([[1000.0, 0, 640], [0, 1000, 480], [0, 0, 1]])
+    found = 0
+    for n_a, n_b, t in [(257, 900, [1.0, 0.1, 0.0]), (1000, 1300, [0.1, 0.0, 1.0]), (40, 35, [0.3, 1.0, 0.2])]:
+        R = _random_rotation(rng)
+        E = skew(np.array(t) / np.linalg.norm(t)) @ R
+        ua, ub = rng.uniform(0, 1280, (n_a, 2)), rng.uniform(0, 960, (n_b, 2))
+        xa, xb = pw._homogeneous_rays(K, ua), pw._homogeneous_rays(K, ub)
+        la, lb = xa @ E.T, xb @ E
+        for max_px in (2.0, 8.7):
+            got = pw._epipolar_candidates(la, lb, xb, 1000.0, max_px)
+            want = _dense_candidates(la, lb, xb, 1000.0, max_px)
+            assert _equal(got, want)
+            found += len(want[0])
+    assert found > 1000
+
+
+def test_sparse_mutual_ratio_is_that_of_the_lexsorts_with_ties_and_any_order():
+    """Row-major and shuffled candidate lists, similarities with many exact ties and without."""
+    rng = np.random.default_rng(1)
+    levels = np.array([0.1, 0.5, 0.7, 0.9, 0.95], np.float32)
+    for k in range(200):
+        n = int(rng.integers(1, 400))
+        u = np.unique(np.c_[rng.integers(0, 30, n), rng.integers(0, 30, n)], axis=0)
+        u = u[rng.permutation(len(u))] if k % 2 else u
+        sim = rng.choice(levels, len(u)) if k % 3 else rng.random(len(u)).astype(np.float32)
+        i, j = u[:, 0], u[:, 1]
+        assert _equal(pw._sparse_mutual_ratio(i, j, sim, 0.8), _lexsort_mutual_ratio(i, j, sim, 0.8))
+
+
+def test_stacked_hand_eye_rotations_are_the_one_by_one_ones():
+    rng = np.random.default_rng(2)
+    alphas, betas = rng.standard_normal((50, 3)), rng.standard_normal((50, 3))
+    I, J = rng.integers(0, 50, 300), rng.integers(0, 50, 300)
+    stacked = pw._hand_eye_rotations(alphas[np.c_[I, J]], betas[np.c_[I, J]])
+    for k in range(len(I)):
+        R, _ = hand_eye_rotation(alphas[[I[k], J[k]]], betas[[I[k], J[k]]])
+        assert np.array_equal(stacked[k], R)
+
+
+def test_a_view_whose_depths_do_not_change_keeps_its_prediction_object():
+    """A pair added to view v whose triangulation angle is too small to give depth: v is
+    re-aggregated (its pairs changed), its depths come out the same, and the cached aggregation
+    returns the very same prediction and matches as before; the outputs equal an uncached run."""
+    rng = np.random.default_rng(3)
+    cam = opencv_camera("cam0", (200, 150), np.array([[100.0, 0, 100], [0, 100, 75], [0, 0, 1]]), np.zeros(5))
+    ds = SimpleNamespace(cameras={"cam0": cam})  # aggregate reads the cameras only
+    n = 300
+    uv = rng.uniform(5, 140, (n, 2))
+    z = rng.uniform(1.0, 3.0, n)
+    feats = {v: pw.Features(uv, np.zeros((n, 128), np.float32), np.arange(n)) for v in ("cam0/a", "cam0/b", "cam0/c")}
+
+    def pair(a, b, angle_deg):
+        idx = np.arange(n)
+        return pw.PairGeometry(a, b, idx, idx, z * 1.0, z * 1.0, np.full(n, np.radians(angle_deg)), np.ones(n) * 0.5,
+                               np.eye(3), np.array([1.0, 0, 0]))
+
+    geoms = {("cam0/a", "cam0/b"): pair("cam0/a", "cam0/b", 10), ("cam0/b", "cam0/c"): pair("cam0/b", "cam0/c", 10)}
+    opt = pw.PairwiseOptions()
+    cache = {}
+    views, pairs, _ = pw.aggregate(ds, feats, geoms, opt, cache=cache)
+    more = {**geoms, ("cam0/a", "cam0/c"): pair("cam0/a", "cam0/c", 0.1)}  # below min_pair_angle_deg
+    views2, pairs2, _ = pw.aggregate(ds, feats, more, opt, cache=cache)
+    fresh, fresh_pairs, _ = pw.aggregate(ds, feats, more, opt)
+    assert all(views2[v] is views[v] for v in views)
+    assert {id(p) for p in pairs} <= {id(p) for p in pairs2}
+    for v in fresh:
+        assert np.array_equal(views2[v].depth, fresh[v].depth) and np.array_equal(views2[v].conf, fresh[v].conf)
+    assert [(p.view_a, p.view_b) for p in pairs2] == [(p.view_a, p.view_b) for p in fresh_pairs]
+    for p, q in zip(pairs2, fresh_pairs):
+        assert _equal((p.uv_a, p.uv_b, p.conf), (q.uv_a, q.uv_b, q.conf))
