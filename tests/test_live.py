@@ -278,3 +278,28 @@ def test_live_pairing_picks_each_new_views_best_partners_and_ends_at_the_batch_s
     assert ups[-1].ee_T_cam
     for c, X in session.sol.ee_T_cam.items():
         assert np.all(np.abs(_z(X, ref.ee_T_cam[c], ref.covariance[c])) < 1e-6)
+
+
+def test_a_view_whose_pairs_are_all_cut_leaves_the_update_not_the_session(simulated, monkeypatch):
+    """A view that no pair with three weighted matches determines (the re-weighting cut all of its
+    pairs) would leave the information singular: as in ``solve`` it leaves that update
+    (engine._Context.drop_weak), is named in views_dropped, and the calibration goes on."""
+    from calib3r_graph.live import engine as live_engine
+
+    root = simulated(seed=7, frames=12, cameras=1, matches_per_pair=200)
+    weak = "cam0/0004"
+    real = live_engine.robust_weights
+
+    def cut(observations, residuals, whitening, conf):  # the real weights, the weak view's pairs cut
+        w = real(observations, residuals, whitening, conf)
+        return [x * 0 if weak in (o.view_a, o.view_b) else x for o, x in zip(observations, w)]
+
+    monkeypatch.setattr(live_engine, "robust_weights", cut)
+    session = LiveSession(root, predictions="sim", guide=False)
+    ups = [session.add_frame(f) for f in session.poses_known]
+    # before: from the first calibration on, every update with the view failed as singular
+    first = next(i for i, u in enumerate(ups) if u.ee_T_cam)
+    assert first <= 6 and all(u.ee_T_cam and "not observable" not in u.message for u in ups[first:]), \
+        [u.message for u in ups]
+    assert weak in {d["view"] for d in session.sol.views_dropped}
+    assert weak not in session.sol.base_T_cam and len(session.sol.base_T_cam) == len(ups) - 1

@@ -37,3 +37,29 @@ def test_each_update_below_15_poses_is_solves_result_on_the_frames_so_far(simula
         worst, steps = max(worst, float(np.abs(z).max())), steps + 1
     # the one-step warm path: up to 0.32 sigma from solve at 7 poses on this recording
     assert steps >= 4 and worst < 0.1, (steps, worst)
+
+
+def test_an_update_that_moves_far_runs_solves_schedule(simulated, monkeypatch):
+    """From 15 poses a one-step update that moves ee_T_cam by more than MOVE_SIGMAS of the previous
+    total sigma is re-run with solve's schedule (live/engine.py): with the threshold at zero every
+    such update re-runs, and each must then be solve's result on the frames so far, as below 15."""
+    from calib3r_graph.live import engine as live_engine
+
+    monkeypatch.setattr(live_engine, "MOVE_SIGMAS", 1e-9)
+    root = simulated(seed=5, frames=17, cameras=1, matches_per_pair=200)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    session = LiveSession(root, predictions="sim", guide=False)
+    worst = 0.0
+    for n, f in enumerate(ds.frames, 1):
+        session.add_frame(f)
+        if n < 15:
+            continue
+        opt = dataclasses.replace(session.engine.opt, jackknife_method="linearised")
+        ref = solve(subset_dataset(ds, ds.frames[:n]), subset_predictions(preds, ds.frames[:n]), opt)
+        X = session.sol.ee_T_cam["cam0"]
+        d = gtsam.Pose3.Logmap(ref.ee_T_cam["cam0"].between(X))
+        R = X.rotation().matrix()
+        z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance["cam0"])))
+        worst = max(worst, float(np.abs(z).max()))
+    assert session.engine.far_moves == 3 and worst < 0.1, (session.engine.far_moves, worst)
