@@ -396,6 +396,10 @@ def main():
     print(table(result))
 
 
+def fmt(v, f) -> str:
+    return "–" if v is None else format(v, f)
+
+
 def table(result) -> str:
     lines = [f"Command: `{result['command']}`", "",
              "| recording | order | runs | frames to 3 mm / 0.2° (median, range) | / recorded | 3σ coverage | "
@@ -404,7 +408,6 @@ def table(result) -> str:
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, rec in result["recordings"].items():
         for order, s in rec["summary"].items():
-            fmt = lambda v, f: "–" if v is None else format(v, f)  # noqa: E731
             rng = s.get("frames_range")
             need = fmt(s["frames_median"], ".0f") + (f" ({rng[0]}–{rng[1]})" if rng and s["runs"] > 1 else "") + (
                 f", never: {s['never_near']}" if s.get("never_near") else "")
@@ -424,7 +427,6 @@ def table(result) -> str:
               "|---|---|---|---|---|---|---|---|"]
     for name, rec in result["recordings"].items():
         for order, s in rec["summary"].items():
-            fmt = lambda v, f: "–" if v is None else format(v, f)  # noqa: E731
             lines.append(f"| {name} | {order} | {fmt(rec.get('batch_solve_cpu_s'), '.2f')} | "
                          f"{fmt(s.get('cpu_median_s'), '.2f')} | {fmt(s.get('updates_cpu_over_batch_cpu'), '.1f')}× | "
                          f"{fmt(s.get('guidance_median_s'), '.2f')} | "

@@ -16,6 +16,19 @@ from calib3r_graph.live import LiveSession
 from calib3r_graph.solver.solve import solve
 
 
+def _z_to_solve(session, ds, preds, n) -> float:
+    """The largest |z| of the session's estimate against solve on the first n frames: the session's
+    options as they stand (its pixel sigma follows the predictions), z in solve's total sigma, the
+    equivalence goal's (the linearised cover keeps the test short)."""
+    opt = dataclasses.replace(session.engine.opt, jackknife_method="linearised")
+    ref = solve(subset_dataset(ds, ds.frames[:n]), subset_predictions(preds, ds.frames[:n]), opt)
+    X = session.sol.ee_T_cam["cam0"]
+    d = gtsam.Pose3.Logmap(ref.ee_T_cam["cam0"].between(X))
+    R = X.rotation().matrix()
+    z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance["cam0"])))
+    return float(np.abs(z).max())
+
+
 def test_each_update_below_15_poses_is_solves_result_on_the_frames_so_far(simulated):
     root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
     ds = load_dataset(root)
@@ -26,15 +39,7 @@ def test_each_update_below_15_poses_is_solves_result_on_the_frames_so_far(simula
         up = session.add_frame(f)
         if not up.ee_T_cam:
             continue
-        # the session's options as they stand (its pixel sigma follows the predictions); z in solve's
-        # total sigma, the equivalence goal's (the linearised cover keeps the test short)
-        opt = dataclasses.replace(session.engine.opt, jackknife_method="linearised")
-        ref = solve(subset_dataset(ds, ds.frames[:n]), subset_predictions(preds, ds.frames[:n]), opt)
-        X = session.sol.ee_T_cam["cam0"]
-        d = gtsam.Pose3.Logmap(ref.ee_T_cam["cam0"].between(X))
-        R = X.rotation().matrix()
-        z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance["cam0"])))
-        worst, steps = max(worst, float(np.abs(z).max())), steps + 1
+        worst, steps = max(worst, _z_to_solve(session, ds, preds, n)), steps + 1
     # the one-step warm path: up to 0.32 sigma from solve at 7 poses on this recording
     assert steps >= 4 and worst < 0.1, (steps, worst)
 
@@ -53,13 +58,6 @@ def test_an_update_that_moves_far_runs_solves_schedule(simulated, monkeypatch):
     worst = 0.0
     for n, f in enumerate(ds.frames, 1):
         session.add_frame(f)
-        if n < 15:
-            continue
-        opt = dataclasses.replace(session.engine.opt, jackknife_method="linearised")
-        ref = solve(subset_dataset(ds, ds.frames[:n]), subset_predictions(preds, ds.frames[:n]), opt)
-        X = session.sol.ee_T_cam["cam0"]
-        d = gtsam.Pose3.Logmap(ref.ee_T_cam["cam0"].between(X))
-        R = X.rotation().matrix()
-        z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance["cam0"])))
-        worst = max(worst, float(np.abs(z).max()))
+        if n >= 15:
+            worst = max(worst, _z_to_solve(session, ds, preds, n))
     assert session.engine.far_moves == 3 and worst < 0.1, (session.engine.far_moves, worst)

@@ -182,17 +182,10 @@ class Engine:
         # 16 updates re-run, frames to stay within 3 mm median 18 -> 6.5, CPU of all updates +16 %.
         start = values
         if cold:
-            # solve's schedule: first round on the RANSAC inliers, irls_rounds re-weighted rounds, then
-            # the noise-calibrated round
-            weights = [o.weight * m for o, m in zip(observations, inliers)]
-            calib = Calibration()
-            for rnd in range(self.opt.irls_rounds + 1):
-                conf, weights, inliers = ctx.drop_weak(values, conf, weights, inliers)
-                values = ctx.lm(values, weights, calib, history)
-                if rnd < self.opt.irls_rounds:
-                    weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
-            conf, weights, inliers = ctx.drop_weak(values, conf, weights, inliers)
-            calib = ctx.calibrate(values, weights, *ctx.terms(values)) if self.opt.noise_calibration else Calibration()
+            # solve's schedule with LM to convergence in each round: the first round on the RANSAC
+            # inliers, irls_rounds re-weighted rounds, then the noise-calibrated round
+            values, conf, weights, inliers, calib = self._schedule(
+                ctx, values, conf, inliers, history, [o.weight * m for o, m in zip(observations, inliers)], ctx.lm)
             values = ctx.lm(values, weights, calib, history)
         elif few:
             values, conf, weights, inliers, calib = self._schedule(ctx, values, conf, inliers, history)
@@ -234,16 +227,18 @@ class Engine:
         self._depth_of = {v: preds.views[v].depth for v in views}
         return sol
 
-    def _schedule(self, ctx, values, conf, sims, history):
+    def _schedule(self, ctx, values, conf, sims, history, weights=None, advance=None):
         """solve's rounds from the warm placement, one Gauss-Newton step a round: the old pairs'
         first on IRLS weights at the warm start, the new pairs' on their RANSAC inliers, the
         re-weighted rounds, then the calibration for the last step (:meth:`_last_step`).
         Views the weights leave undetermined are left out as ``solve`` leaves them out
-        (:meth:`_Context.drop_weak`). (values, conf, weights, sims, calibration)."""
-        weights, calib = ctx.warm_weights(values, conf, sims), Calibration()
+        (:meth:`_Context.drop_weak`). ``weights``: the first round's instead; ``advance``: a round's
+        optimiser instead of one step (the cold start's LM). (values, conf, weights, sims, calibration)."""
+        advance = advance or ctx.step
+        weights, calib = ctx.warm_weights(values, conf, sims) if weights is None else weights, Calibration()
         for rnd in range(self.opt.irls_rounds + 1):
             conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
-            values = ctx.step(values, weights, calib, history)
+            values = advance(values, weights, calib, history)
             if rnd < self.opt.irls_rounds:
                 weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
         conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
