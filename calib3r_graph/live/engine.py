@@ -178,8 +178,8 @@ class Engine:
         # the same weights change nothing: the lagged weights belong to the previous solution, as
         # below 15). So a one-step result that moved ee_T_cam by more than MOVE_SIGMAS of the previous
         # update's own total sigma (inconsistent with it at 3 sigma) is re-run with solve's schedule
-        # from the warm placement. Measured on ten replays of rwhe_kuka_1 (docs/live.md): 1-11 of the
-        # 16 updates re-run, frames to stay within 3 mm median 18 -> 6.5, CPU of all updates +16 %.
+        # from the warm placement. Measured on ten replays of rwhe_kuka_1 (docs/live.md): 0-11 of the
+        # 16 updates re-run, frames to stay within 3 mm median 18 -> 6.5, CPU of all updates +15 %.
         start = values
         if cold:
             # solve's schedule with LM to convergence in each round: the first round on the RANSAC

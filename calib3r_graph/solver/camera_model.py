@@ -111,15 +111,14 @@ def _moved(Ks, cameras, cam, p, h) -> dict:
     return out
 
 
-def _pair_terms(o, w, values, keys, Ks, noise, thetas, steps, whitening=None):
+def _pair_terms(o, w, values, keys, Ks, noise, thetas, steps):
     """One view pair's part of the sensitivities, or None when no parameter moves it:
     (its keys, J^T dE (D, m), dE^T dE (m, m), dE^T e (m,)) with e its whitened residual, J its
     whitened Jacobian and dE the change of e per +1 sigma of each parameter (``steps[j][view]``:
-    that sigma on the view's grid). ``whitening``: the pair's point_sqrt_info at ``values`` with
-    unit weights, if already computed (scaled by sqrt(w) it is the weighted one, point by point)."""
+    that sigma on the view's grid)."""
     if not _moved_by(o, thetas):
         return None
-    lin = scene_linearisation(o, w, values, keys, Ks, noise, whitening)
+    lin = scene_linearisation(o, w, values, keys, Ks, noise)
     return None if lin is None else pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps)
 
 
@@ -184,14 +183,13 @@ def camera_parameters(keys, cameras: dict, Ks) -> tuple[list, list]:
 
 
 def camera_model_errors(graph, values, keys, observations, weights, Ks, noise, cameras: dict,
-                        source: str = "dataset.yaml", system=None, whitening=None, terms=None) -> dict:
+                        source: str = "dataset.yaml", system=None, terms=None) -> dict:
     """{camera: CameraModelError} of a solved graph.
 
     ``observations``, ``weights``, ``Ks``, ``noise``: what the 3D match factors of ``graph``
     were built from (solver.graph.add_scene_factors); ``cameras``: {name: Camera} with
     ``params_sigma`` (px) or None. Given ``system`` ((H, offsets) of ``graph`` at ``values``), it is
-    not linearised again; ``whitening``: each pair's point_sqrt_info at ``values`` with unit
-    weights; ``terms``: each pair's :func:`pair_sensitivity` at ``values`` with the parameters of
+    not linearised again; ``terms``: each pair's :func:`pair_sensitivity` at ``values`` with the parameters of
     :func:`camera_parameters`, where the caller linearised the pairs itself. H and the pairs' terms
     must come from one linearisation point: on rwhe_kuka_1's live updates, H from before a
     Gauss-Newton step with terms from after it put the share off by up to 700x (the sum over pairs
@@ -212,7 +210,7 @@ def camera_model_errors(graph, values, keys, observations, weights, Ks, noise, c
         if terms is not None:
             t = terms[i]
         else:
-            t = _pair_terms(o, w, values, keys, Ks, noise, thetas, steps, None if whitening is None else whitening[i])
+            t = _pair_terms(o, w, values, keys, Ks, noise, thetas, steps)
         if t is None:
             continue
         k, JdE, dEdE, dEe = t
@@ -279,7 +277,7 @@ def add_camera_model(sol, ds, weights, Ks, noise, at=None, **shared):
     after the jackknife's cover (the leave-one-out solves share the intrinsics, so their spread
     holds none of it); ``sol.stats["camera_model"]`` records it. ``at``: the values the
     share is linearised at (default ``sol.values``); ``shared``: :func:`camera_model_errors`'
-    ``system``, ``whitening`` or ``terms`` at those values (a live update's Gauss-Newton step
+    ``system`` or ``terms`` at those values (a live update's Gauss-Newton step
     linearised before it moved: its H and its pairs' terms are both from there)."""
     t = time.perf_counter()
     cm = camera_model_errors(sol.graph, sol.values if at is None else at, sol.keys, sol.observations, weights, Ks, noise,
