@@ -1,7 +1,9 @@
 """A live update linearises its 3D match factors by hand (live/engine.py ``_Context.linear_system``,
 graph.scene_linearisation), so that one Jacobian per pair serves the linear system and the camera
 model's sensitivities. Both must be what GTSAM's linearisation and camera_model's own pass give,
-at every update's linearisation point (non-zero residuals: real matches, moving estimates)."""
+at every update's linearisation point (non-zero residuals: real matches, moving estimates). The
+step's cost check (``_Context.error``, from the residuals the update keeps) must be GTSAM's graph
+error."""
 
 import shutil
 
@@ -24,8 +26,9 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
     systems, shares = [], []
     hand = live_engine._Context.linear_system
 
-    def compared(ctx, graph, values, weights, calib, camera=True):
-        H, offsets, factors = hand(ctx, graph, values, weights, calib, camera)
+    def compared(ctx, values, weights, calib, camera=True):
+        H, offsets, factors = hand(ctx, values, weights, calib, camera)
+        graph = ctx.graph(values, weights, calib)
         H_ref, offsets_ref, factors_ref = factor_system(graph, values)
         assert offsets == offsets_ref
         g, g_ref = np.zeros(len(H)), np.zeros(len(H))
@@ -49,7 +52,17 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
                        float(np.abs(own["cam0"].covariance).max())))
         return H, offsets, factors
 
+    errors = []
+    own_error = live_engine._Context.error
+
+    def compared_error(ctx, values, at, weights, calib):
+        e = own_error(ctx, values, at, weights, calib)
+        e_ref = ctx.graph(at, weights, calib).error(values)  # the graph built at the step's start
+        errors.append(abs(e - e_ref) / e_ref)
+        return e
+
     monkeypatch.setattr(live_engine._Context, "linear_system", compared)
+    monkeypatch.setattr(live_engine._Context, "error", compared_error)
     session = LiveSession(root, predictions="sim", guide=False)
     for f in session.poses_known:
         session.add_frame(f)
@@ -58,4 +71,5 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
     worst = np.max(np.array(systems), axis=0)
     assert np.all(worst < 1e-8), worst  # information, gradient, cost: the same numbers
     assert max(c[0] for c in shares) < 1e-8  # the camera-model share: the same
+    assert len(errors) >= 30 and max(errors) < 1e-10, (len(errors), max(errors))  # the step's cost: GTSAM's
     assert min(c[1] for c in shares) > 0  # and not zero (the test would pass on no camera model)

@@ -78,13 +78,24 @@ class Keys:
 
 
 def point_sqrt_info(obs, K_a, K_b, a_T_b: gtsam.Pose3, scale_ratio_b_to_a: float, noise: NoiseOptions,
-                    weights: np.ndarray) -> np.ndarray:
+                    weights: np.ndarray, covariances=None) -> np.ndarray:
     """(N, 3, 3) square-root information of e_p = P_a - a_T_b P_b (view a's unit depth scale).
 
     Each point's covariance comes from pixel noise (lateral, sigma_px * depth / f) and
     relative depth noise (along the viewing ray); view b's is rotated into a's frame and
     rescaled to a's units. ``weights`` (confidence x robust weight) scale the information.
+    ``covariances``: :func:`point_covariances` of ``obs``, if already computed (they do not depend
+    on the views' poses or scales, so a caller that whitens one pair at many points keeps them).
     """
+    C_a, C_b = point_covariances(obs, K_a, K_b, noise) if covariances is None else covariances
+    R = a_T_b.rotation().matrix()
+    C = C_a + scale_ratio_b_to_a**2 * (R @ C_b @ R.T)
+    return inverse_cholesky_3x3(C) * np.sqrt(weights)[:, None, None]
+
+
+def point_covariances(obs, K_a, K_b, noise: NoiseOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Each match's point covariance (N, 3, 3) in its own camera, in that view's frontend-depth unit:
+    ``sigma_d^2 P P^T + diag((sigma_px z / fx)^2, (sigma_px z / fy)^2, 0)``, for view a and view b."""
     def cov(pts, K):
         z = pts[:, 2]
         lat = (noise.pixel_sigma_px * z)[:, None] ** 2 * np.array([1 / K[0, 0] ** 2, 1 / K[1, 1] ** 2, 0.0])
@@ -92,9 +103,7 @@ def point_sqrt_info(obs, K_a, K_b, a_T_b: gtsam.Pose3, scale_ratio_b_to_a: float
         C[:, [0, 1, 2], [0, 1, 2]] += lat
         return C
 
-    R = a_T_b.rotation().matrix()
-    C = cov(obs.pts_a, K_a) + scale_ratio_b_to_a**2 * (R @ cov(obs.pts_b, K_b) @ R.T)
-    return inverse_cholesky_3x3(C) * np.sqrt(weights)[:, None, None]
+    return cov(obs.pts_a, K_a), cov(obs.pts_b, K_b)
 
 
 def inverse_cholesky_3x3(C: np.ndarray) -> np.ndarray:
