@@ -55,10 +55,10 @@ import numpy as np
 
 from calib3r_graph.errors import SolveError
 from calib3r_graph.io.predictions import split_view_id
-from calib3r_graph.solver.graph import (Keys, add_depth_correction_priors, add_robot_factors, add_scale_gauge_factors,
-                                        add_scene_factors, depth_correction, match_residuals, point_covariances,
-                                        point_sqrt_info,
-                                        robot_chi2, robot_views, scene_linearisation)
+from calib3r_graph.solver.graph import (MIN_FACTOR_MATCHES, Keys, add_depth_correction_priors, add_robot_factors,
+                                        add_scale_gauge_factors, add_scene_factors, depth_correction, match_residuals,
+                                        point_covariances, point_sqrt_info, robot_chi2, robot_views,
+                                        scene_linearisation)
 from factors.match3d import DEPTH_CORRECTION_DIM
 from calib3r_graph.solver.init import initialise, pairwise_sim3
 from calib3r_graph.solver.jackknife import (JACKKNIFE_BELOW, cover, factor_system, linearised_jackknife, moved_system,
@@ -600,7 +600,7 @@ class _Context:
         e = self.graph(at, weights, calib, scene=False).error(values)  # (its robot noise: at at's ee_T_cam)
         for w, W, r in zip(weights, self.terms(at)[1], self.terms(values)[0]):
             keep = w > 0
-            if keep.sum() < 3:  # no factor (add_scene_factors)
+            if keep.sum() < MIN_FACTOR_MATCHES:  # no factor (add_scene_factors)
                 continue
             wr = np.einsum("nij,nj->ni", W[keep], r[keep])
             e += 0.5 * scale * float(w[keep] @ np.einsum("ni,ni->n", wr, wr))
@@ -621,7 +621,8 @@ class _Context:
         keys, noise = self.keys, self.opt.noise
         out = []
         for o in (observations or self.observations):
-            key, c = (o.view_a, o.view_b), self.covariances.get((o.view_a, o.view_b))
+            key = (o.view_a, o.view_b)
+            c = self.covariances.get(key)
             if c is None or c[0] is not o or c[1] is not noise:
                 c = (o, noise, point_covariances(o, self.Ks[o.view_a], self.Ks[o.view_b], noise))
                 self.covariances[key] = c

@@ -43,6 +43,12 @@ class NoiseOptions:
     depth_correction_sigma: float = 0.02  # prior on each relative depth-correction coefficient (0 = off)
 
 
+# A view pair makes a 3D match factor with at least this many matches of non-zero weight (fewer
+# cannot fix the relative pose and scale it constrains); every place that asks whether a pair is in
+# the graph asks this.
+MIN_FACTOR_MATCHES = 3
+
+
 class Keys:
     def __init__(self, views, cameras):
         self.view_index = {v: i for i, v in enumerate(views)}
@@ -131,7 +137,7 @@ def add_scene_factors(graph, keys, observations, weights, values_init, Ks, noise
     (the same numbers: each point's is its own)."""
     for i, (o, w) in enumerate(zip(observations, weights)):
         keep = w > 0
-        if keep.sum() < 3:
+        if keep.sum() < MIN_FACTOR_MATCHES:
             continue
         if not keep.all():  # (a copy of every array otherwise)
             o = o.subset(keep)
@@ -182,7 +188,7 @@ def scene_linearisation(o, w, values, keys, Ks, noise, whitening=None):
     what else needs J (solver/camera_model.py). ``whitening``: the pair's point_sqrt_info at
     ``values`` with unit weights, if already computed."""
     keep = w > 0
-    if keep.sum() < 3:
+    if keep.sum() < MIN_FACTOR_MATCHES:
         return None
     if not keep.all():
         o = o.subset(keep)

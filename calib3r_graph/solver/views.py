@@ -8,9 +8,10 @@ import numpy as np
 
 from calib3r_graph.errors import SolveError
 from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.solver.graph import MIN_FACTOR_MATCHES
 
 
-def unsupported_views(views, observations, weights, min_matches=3) -> dict:
+def unsupported_views(views, observations, weights, min_matches=MIN_FACTOR_MATCHES) -> dict:
     """{view: reason} for the views that the scene factors of this round cannot determine.
 
     A pair enters the graph with at least ``min_matches`` matches of non-zero weight
