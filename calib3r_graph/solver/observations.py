@@ -36,19 +36,33 @@ class PairObservations:
                                 self.basis_a[keep], self.basis_b[keep])
 
 
-def sample_bilinear(img: np.ndarray, uv: np.ndarray):
-    """Bilinear samples of img at uv (N, 2) and whether all four neighbours are > 0."""
-    h, w = img.shape
+def bilinear_taps(shape, uv: np.ndarray) -> tuple:
+    """Where :func:`sample_bilinear` samples an image of ``shape`` (h, w) at uv (N, 2): (inside,
+    flat index of the top-left neighbour, row length, fx, fy), so that two images of one shape (a
+    view's depth and confidence) are sampled with one computation of the taps."""
+    h, w = shape
     x, y = uv[:, 0], uv[:, 1]
     inside = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
     x0 = np.clip(np.floor(x).astype(int), 0, w - 2)
     y0 = np.clip(np.floor(y).astype(int), 0, h - 2)
     fx, fy = np.clip(x - x0, 0, 1), np.clip(y - y0, 0, 1)
-    c00, c01 = img[y0, x0], img[y0, x0 + 1]
-    c10, c11 = img[y0 + 1, x0], img[y0 + 1, x0 + 1]
+    return inside, y0 * w + x0, w, fx, fy
+
+
+def sample_taps(img: np.ndarray, taps: tuple):
+    """Bilinear samples of img at :func:`bilinear_taps` and whether all four neighbours are > 0."""
+    inside, i00, w, fx, fy = taps
+    flat = img.ravel()
+    c00, c01 = flat[i00], flat[i00 + 1]
+    c10, c11 = flat[i00 + w], flat[i00 + w + 1]
     val = (c00 * (1 - fx) + c01 * fx) * (1 - fy) + (c10 * (1 - fx) + c11 * fx) * fy
     ok = inside & (c00 > 0) & (c01 > 0) & (c10 > 0) & (c11 > 0)
     return val, ok
+
+
+def sample_bilinear(img: np.ndarray, uv: np.ndarray):
+    """Bilinear samples of img at uv (N, 2) and whether all four neighbours are > 0."""
+    return sample_taps(img, bilinear_taps(img.shape, uv))
 
 
 def backproject(K: np.ndarray, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -61,10 +75,11 @@ def build_observations(preds: Predictions, max_matches_per_pair: int = 3000, min
     out = []
     for p in preds.pairs:
         va, vb = preds.views[p.view_a], preds.views[p.view_b]
-        d_a, ok_a = sample_bilinear(va.depth, p.uv_a)
-        d_b, ok_b = sample_bilinear(vb.depth, p.uv_b)
-        c_a, _ = sample_bilinear(va.conf, p.uv_a)
-        c_b, _ = sample_bilinear(vb.conf, p.uv_b)
+        ta, tb = bilinear_taps(va.depth.shape, p.uv_a), bilinear_taps(vb.depth.shape, p.uv_b)
+        d_a, ok_a = sample_taps(va.depth, ta)
+        d_b, ok_b = sample_taps(vb.depth, tb)
+        c_a, _ = sample_taps(va.conf, ta) if va.conf.shape == va.depth.shape else sample_bilinear(va.conf, p.uv_a)
+        c_b, _ = sample_taps(vb.conf, tb) if vb.conf.shape == vb.depth.shape else sample_bilinear(vb.conf, p.uv_b)
         w = p.conf * np.sqrt(np.maximum(c_a, 0) * np.maximum(c_b, 0))
         keep = np.flatnonzero(ok_a & ok_b & (w > 0))
         if len(keep) < min_matches:
