@@ -183,6 +183,26 @@ def rendered_rgb(tmp_path_factory):
     return root
 
 
+def test_features_computed_and_read_back_from_the_cache_are_the_same_and_match_the_same(rendered_rgb, tmp_path):
+    """The feature cache keeps descriptors as float16; features are made at that precision, so the
+    first run (computing them) and a later one (reading them) give the same pair geometry."""
+    from calib3r_graph.frontends.pairwise import features_for, two_view_geometry
+
+    ds, opt = load_dataset(rendered_rgb), PairwiseOptions()
+    vids = [f"cam0/{f}" for f in ds.frames[:2]]
+    fresh = features_for(ds, vids, opt, tmp_path / "cache", progress=False)  # computed, then written
+    assert len(list((tmp_path / "cache" / "features").glob("*.npz"))) == 2
+    back = features_for(ds, vids, opt, tmp_path / "cache", progress=False)  # read back
+    for v in vids:
+        assert len(fresh[v].desc) > 100
+        for f in ("uv", "desc", "kp_id"):
+            assert np.array_equal(getattr(fresh[v], f), getattr(back[v], f)), (v, f)
+    K = ds.cameras["cam0"].K
+    g1, g2 = (two_view_geometry(F[vids[0]], F[vids[1]], K, K, opt) for F in (fresh, back))
+    assert g1 is not None and len(g1.ia) >= opt.min_inliers
+    assert np.array_equal(g1.ia, g2.ia) and np.array_equal(g1.ib, g2.ib) and np.array_equal(g1.depth_a, g2.depth_a)
+
+
 @pytest.mark.slow
 def test_pairwise_frontend_solves_a_rendered_scene_from_8_images(rendered_rgb, tmp_path):
     """predict --frontend pairwise, then solve: within 3 mm / 0.2 deg of the truth (measured:
