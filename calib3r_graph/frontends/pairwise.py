@@ -138,7 +138,9 @@ class PairwiseOptions:
 
     def pair_key(self) -> dict:
         return {"ratio": self.ratio, "ransac_px": self.ransac_px, "min_inliers": self.min_inliers,
-                "max_reprojection_px": self.max_reprojection_px, "guided": self.guided, **self.feature_key(), "v": 2}
+                "max_reprojection_px": self.max_reprojection_px, "guided": self.guided, **self.feature_key(), "v": 3}
+        # v3: pairs matched on the cache's float16 descriptors (extract_features); a v2 pair may have
+        # been matched on the float32 ones of the run that made the cache
 
 
 @dataclass
