@@ -19,7 +19,7 @@ simulated dataset (its own predictions), the recording is replayed through ``Liv
 The linearised and re-solving jackknives are compared by ``bench/jackknife.py``.
 
     .venv/bin/python bench/live_real.py [--recordings rwhe_kuka_1,rwhe_kuka_2,tabb_ds1,sim] [--seeds 20]
-        [--work DIR] [--cache DIR] [--out bench/results]
+        [--seed-start 0] [--work DIR] [--cache DIR] [--out bench/results]
 
 Writes ``OUT/live_real.json``, ``OUT/live_real.md`` and ``OUT/live_real_<recording>.png``.
 """
@@ -339,6 +339,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recordings", default="rwhe_kuka_1,rwhe_kuka_2,tabb_ds1,sim")
     ap.add_argument("--seeds", type=int, default=20, help="random orders per recording")
+    ap.add_argument("--seed-start", type=int, default=0,
+                    help="the first random order's seed (to split one recording's random orders over processes)")
     ap.add_argument("--guided-seeds", type=int, default=1,
                     help="guided orders per recording: seed 0 starts at the first recorded frame, the others at a "
                          "seeded random frame")
@@ -372,7 +374,7 @@ def main():
             sc = linear_scores(ref, order)
             linear[o] = linear_frames_to_near(sc, list(range(1, len(order) + 1)))
             print(f"  {o}: the linearised model puts it within 3 mm / 0.2 deg after {linear[o]} frames", flush=True)
-        orders = (("recorded", [0]), ("guided", range(args.guided_seeds)), ("random", range(args.seeds)),
+        orders = (("recorded", [0]), ("guided", range(args.guided_seeds)), ("random", range(args.seed_start, args.seed_start + args.seeds)),
                   ("oracle", [0]), ("file", [0]))
         for order, seeds in [(o, s) for o, s in orders if o in wanted]:
             for seed in seeds:
