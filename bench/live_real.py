@@ -374,8 +374,8 @@ def main():
             sc = linear_scores(ref, order)
             linear[o] = linear_frames_to_near(sc, list(range(1, len(order) + 1)))
             print(f"  {o}: the linearised model puts it within 3 mm / 0.2 deg after {linear[o]} frames", flush=True)
-        orders = (("recorded", [0]), ("guided", range(args.guided_seeds)), ("random", range(args.seed_start, args.seed_start + args.seeds)),
-                  ("oracle", [0]), ("file", [0]))
+        orders = (("recorded", [0]), ("guided", range(args.guided_seeds)),
+                  ("random", range(args.seed_start, args.seed_start + args.seeds)), ("oracle", [0]), ("file", [0]))
         for order, seeds in [(o, s) for o, s in orders if o in wanted]:
             for seed in seeds:
                 r = run_order(ds_dir, pname, cache / name, ref, order, seed, fixed.get(order))

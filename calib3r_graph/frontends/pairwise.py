@@ -137,10 +137,10 @@ class PairwiseOptions:
                 "contrast_threshold": self.contrast_threshold, "v": 1}
 
     def pair_key(self) -> dict:
-        return {"ratio": self.ratio, "ransac_px": self.ransac_px, "min_inliers": self.min_inliers,
-                "max_reprojection_px": self.max_reprojection_px, "guided": self.guided, **self.feature_key(), "v": 3}
         # v3: pairs matched on the cache's float16 descriptors (extract_features); a v2 pair may have
         # been matched on the float32 ones of the run that made the cache
+        return {"ratio": self.ratio, "ransac_px": self.ransac_px, "min_inliers": self.min_inliers,
+                "max_reprojection_px": self.max_reprojection_px, "guided": self.guided, **self.feature_key(), "v": 3}
 
 
 @dataclass
@@ -202,9 +202,9 @@ def extract_features(ds, cam, frame, opt: PairwiseOptions) -> Features:
     desc = desc.astype(np.float32)
     desc /= np.maximum(desc.sum(1, keepdims=True), 1e-12)  # RootSIFT
     # at the precision the feature cache keeps (float16, features_for): a run that computes the
-    # features and one that reads them back then match the same descriptors. Without it the first
-    # solve and every later one differed (rwhe_kuka_2: descriptors by up to 1.2e-4, the result by
-    # 0.02 sigma once the robot-guided matching ran on the other's features)
+    # features and one that reads them back then match the same descriptors. Without it they differed
+    # by up to 1.2e-4, and solve on tabb_ds1 from an empty cache and then from the cache by 0.49 sigma
+    # (docs/frontends.md)
     desc = np.sqrt(desc).astype(np.float16).astype(np.float32)
     _, kp_id = np.unique(np.round(pts * 100).astype(np.int64), axis=0, return_inverse=True)
     return Features(uv, desc, kp_id.ravel())

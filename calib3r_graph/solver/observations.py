@@ -78,8 +78,8 @@ def build_observations(preds: Predictions, max_matches_per_pair: int = 3000, min
         ta, tb = bilinear_taps(va.depth.shape, p.uv_a), bilinear_taps(vb.depth.shape, p.uv_b)
         d_a, ok_a = sample_taps(va.depth, ta)
         d_b, ok_b = sample_taps(vb.depth, tb)
-        c_a, _ = sample_taps(va.conf, ta) if va.conf.shape == va.depth.shape else sample_bilinear(va.conf, p.uv_a)
-        c_b, _ = sample_taps(vb.conf, tb) if vb.conf.shape == vb.depth.shape else sample_bilinear(vb.conf, p.uv_b)
+        c_a, _ = sample_taps(va.conf, ta)  # a view's conf has its depth's shape (io/predictions checks it)
+        c_b, _ = sample_taps(vb.conf, tb)
         w = p.conf * np.sqrt(np.maximum(c_a, 0) * np.maximum(c_b, 0))
         keep = np.flatnonzero(ok_a & ok_b & (w > 0))
         if len(keep) < min_matches:
