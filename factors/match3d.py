@@ -84,23 +84,47 @@ def match3d_error(m: Match3DMeasurement, this: gtsam.CustomFactor, values: gtsam
     P_b = s_b * g_b
     Q = P_b @ R_ab.T + a_T_b.translation()
     e = g_a - Q / s_a
+    W = m.sqrt_info
     if jacobians is not None:
-        n = len(Q)
-        # All columns at once, then one batched whitening: [xi_a | xi_b | s_a | s_b | c_a | c_b].
-        cols = [np.concatenate([-skew(Q), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2) / s_a,  # d e/d xi_a
-                np.concatenate([R_ab @ skew(P_b), -np.broadcast_to(R_ab, (n, 3, 3))], axis=2) / s_a,  # d e/d xi_b
-                (Q / s_a**2)[:, :, None],  # d e/d s_a
-                (-(g_b @ R_ab.T) / s_a)[:, :, None]]  # d e/d s_b
-        if len(keys) == 6:
-            # d g_a / d c_a = pd_a phi_a^T;  d e / d c_b = -(s_b / s_a) R_ab pd_b phi_b^T
-            cols.append(m.ray_depth_a[:, :, None] * m.basis_a[:, None, :])
-            cols.append((-(s_b / s_a) * (m.ray_depth_b @ R_ab.T))[:, :, None] * m.basis_b[:, None, :])
-        WJ = np.matmul(m.sqrt_info, np.concatenate(cols, axis=2)).reshape(3 * n, -1)
-        start = 0
-        for i, c in enumerate(cols):
-            jacobians[i] = WJ[:, start:start + c.shape[2]]
-            start += c.shape[2]
-    return np.matmul(m.sqrt_info, e[:, :, None]).reshape(-1)
+        # The whitened blocks W_p dE_p/dx, written from (N, 3) products and cross products rather
+        # than W applied to an assembled (N, 3, D) Jacobian (a batched product of 3x3 matrices, 4x
+        # the time at 700 matches; the same numbers to rounding). With w_i the rows of W_p:
+        # w_i^T skew(q) = (w_i x q)^T and R skew(p) = skew(R p) R.
+        #   d e/d xi_a = [-skew(Q) | I] / s_a          -> rows (Q x w_i) / s_a, W / s_a
+        #   d e/d xi_b = [R_ab skew(P_b) | -R_ab] / s_a -> rows (M_i x P_b) / s_a, -M / s_a, M = W R_ab
+        #   d e/d s_a = Q / s_a^2,  d e/d s_b = -(R_ab g_b) / s_a
+        #   d e/d c_a = g0_a phi_a^T,  d e/d c_b = -(s_b / s_a) (R_ab g0_b) phi_b^T  (g0: uncorrected)
+        n, inv = len(Q), 1.0 / s_a
+        k = m.basis_a.shape[1] if len(keys) == 6 else 0
+        M = (W.reshape(3 * n, 3) @ (R_ab * inv)).reshape(n, 3, 3)  # W R_ab / s_a
+        WJ = np.empty((n, 3, 14 + 2 * k))
+        _cross_rows(Q * inv, W, WJ[:, :, 0:3])
+        np.multiply(W, inv, out=WJ[:, :, 3:6])
+        _cross_rows(-P_b, M, WJ[:, :, 6:9])
+        np.negative(M, out=WJ[:, :, 9:12])
+        WJ[:, :, 12] = _apply(W, Q * inv**2)
+        WJ[:, :, 13] = _apply(M, -g_b)
+        if k:
+            np.multiply(_apply(W, m.ray_depth_a)[:, :, None], m.basis_a[:, None, :], out=WJ[:, :, 14:14 + k])
+            np.multiply(_apply(M, -s_b * m.ray_depth_b)[:, :, None], m.basis_b[:, None, :], out=WJ[:, :, 14 + k:])
+        WJ = WJ.reshape(3 * n, -1)
+        for i, (a, b) in enumerate([(0, 6), (6, 12), (12, 13), (13, 14), (14, 14 + k), (14 + k, 14 + 2 * k)]
+                                   [:len(keys)]):
+            jacobians[i] = WJ[:, a:b]
+    return _apply(W, e).reshape(-1)
+
+
+def _apply(W, v):
+    """W_p v_p for a batch: (N, 3, 3), (N, 3) -> (N, 3)."""
+    return W[:, :, 0] * v[:, :1] + W[:, :, 1] * v[:, 1:2] + W[:, :, 2] * v[:, 2:3]
+
+
+def _cross_rows(q, A, out):
+    """q_p x a_pi for each row a_pi of A_p, into ``out``: (N, 3), (N, 3, 3) -> (N, 3, 3), row i = q x a_i."""
+    q0, q1, q2 = q[:, None, 0], q[:, None, 1], q[:, None, 2]
+    out[:, :, 0] = q1 * A[:, :, 2] - q2 * A[:, :, 1]
+    out[:, :, 1] = q2 * A[:, :, 0] - q0 * A[:, :, 2]
+    out[:, :, 2] = q0 * A[:, :, 1] - q1 * A[:, :, 0]
 
 
 def make_match3d_factor(m: Match3DMeasurement, keys, compress: bool = True) -> gtsam.CustomFactor:

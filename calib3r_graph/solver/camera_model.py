@@ -146,7 +146,8 @@ def pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps):
     if noise.depth_correction_sigma > 0:
         alpha = alpha + o.basis_a @ depth_correction(values, keys, o.view_a)
         beta = beta * (1 + o.basis_b @ depth_correction(values, keys, o.view_b))
-    WR = W @ R_ab if cb in (t[0] for t in thetas) else None  # b's changes, rotated into a's frame and whitened
+    # b's changes, rotated into a's frame and whitened (one matrix product for all points)
+    WR = (W.reshape(-1, 3) @ R_ab).reshape(W.shape) if cb in (t[0] for t in thetas) else None
     dE = np.zeros((len(o), 3, len(thetas)))
     for j in js:
         c, p, _ = thetas[j]
