@@ -74,6 +74,17 @@ def match3d_residuals(m: Match3DMeasurement, base_T_a: gtsam.Pose3, base_T_b: gt
 def match3d_error(m: Match3DMeasurement, this: gtsam.CustomFactor, values: gtsam.Values,
                   jacobians) -> np.ndarray:
     keys = this.keys()
+    e, WJ, blocks = match3d_whitened(m, keys, values, jacobians is not None)
+    if jacobians is not None:
+        for i, (a, b) in enumerate(blocks):
+            jacobians[i] = WJ[:, a:b]
+    return e
+
+
+def match3d_whitened(m: Match3DMeasurement, keys, values: gtsam.Values, jacobian: bool = True):
+    """(whitened residual (3N,), whitened Jacobian (3N, D) or None, each key's column range in it):
+    :func:`match3d_error`'s numbers with the Jacobian as one array, for a caller that needs it whole
+    (solver/graph.scene_linearisation)."""
     base_T_a, base_T_b = values.atPose3(keys[0]), values.atPose3(keys[1])
     s_a, s_b = values.atDouble(keys[2]), values.atDouble(keys[3])
     c_a = values.atVector(keys[4]) if len(keys) == 6 else None
@@ -85,7 +96,8 @@ def match3d_error(m: Match3DMeasurement, this: gtsam.CustomFactor, values: gtsam
     Q = P_b @ R_ab.T + a_T_b.translation()
     e = g_a - Q / s_a
     W = m.sqrt_info
-    if jacobians is not None:
+    WJ, blocks = None, None
+    if jacobian:
         # The whitened blocks W_p dE_p/dx, written from (N, 3) products and cross products rather
         # than W applied to an assembled (N, 3, D) Jacobian (a batched product of 3x3 matrices, 4x
         # the time at 700 matches; the same numbers to rounding). With w_i the rows of W_p:
@@ -108,10 +120,8 @@ def match3d_error(m: Match3DMeasurement, this: gtsam.CustomFactor, values: gtsam
             np.multiply(_apply(W, m.ray_depth_a)[:, :, None], m.basis_a[:, None, :], out=WJ[:, :, 14:14 + k])
             np.multiply(_apply(M, -s_b * m.ray_depth_b)[:, :, None], m.basis_b[:, None, :], out=WJ[:, :, 14 + k:])
         WJ = WJ.reshape(3 * n, -1)
-        for i, (a, b) in enumerate([(0, 6), (6, 12), (12, 13), (13, 14), (14, 14 + k), (14 + k, 14 + 2 * k)]
-                                   [:len(keys)]):
-            jacobians[i] = WJ[:, a:b]
-    return _apply(W, e).reshape(-1)
+        blocks = [(0, 6), (6, 12), (12, 13), (13, 14), (14, 14 + k), (14 + k, 14 + 2 * k)][:len(keys)]
+    return _apply(W, e).reshape(-1), WJ, blocks
 
 
 def _apply(W, v):

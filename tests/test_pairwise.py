@@ -325,3 +325,26 @@ def test_eight_real_images_agree_with_the_full_recording(tmp_path):
         full_sig = uncertainty_report(full.ee_T_cam["cam0"], full.covariance["cam0"])["sigma_ee_frame"]
         ratios[mode] = in_sigmas(sol.ee_T_cam["cam0"], sig, full.ee_T_cam["cam0"], full_sig)["max_ratio"]
     assert ratios["never"] > 3 and ratios["auto"] < 3, ratios
+
+
+def test_translation_fit_is_the_least_squares_solution_of_the_full_system():
+    """The robot check's rough t_X (_translation_fit, lambdas minimised out) equals the least-squares
+    solution of the full system [M_e, -t_e] [t_X; lambda] = -t_A over the pairs, at seeded random pairs."""
+    from calib3r_graph.frontends.pairwise import _translation_fit
+
+    rng = np.random.default_rng(4)
+    n = 12
+    M = np.array([gtsam.Rot3.Expmap(rng.normal(0, 0.5, 3)).matrix() - np.eye(3) for _ in range(n)])
+    tA, tB = rng.normal(0, 0.2, (n, 3)), rng.normal(0, 1, (n, 3))
+    tB /= np.linalg.norm(tB, axis=1, keepdims=True)
+    fit = _translation_fit(M, tA, tB)
+    for idx in (rng.choice(n, 3, replace=False), rng.choice(n, 5, replace=False), np.arange(n)):
+        A = np.zeros((3 * len(idx), 3 + len(idx)))
+        for k, i in enumerate(idx):
+            A[3 * k:3 * k + 3, :3] = M[i]
+            A[3 * k:3 * k + 3, 3 + k] = -tB[i]
+        full = np.linalg.lstsq(A, -tA[idx].ravel(), rcond=None)[0][:3]
+        assert np.allclose(fit(idx), full, rtol=0, atol=1e-10)
+    batch = np.array([rng.choice(n, 3, replace=False) for _ in range(20)])
+    assert np.allclose(fit(batch), [fit(b) for b in batch], rtol=0, atol=1e-12)
+

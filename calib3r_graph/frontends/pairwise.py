@@ -623,19 +623,12 @@ def _translation_check(kept: dict, base_T_ee: dict, R_X, opt: PairwiseOptions, i
         cos = (pred * tB).sum(1) / np.maximum(norm, 1e-12)
         return np.degrees(np.arccos(np.clip(cos, -1, 1))), norm
 
-    def fit(idx):
-        n = len(idx)
-        A = np.zeros((3 * n, 3 + n))
-        for k, i in enumerate(idx):
-            A[3 * k:3 * k + 3, :3] = M[i]
-            A[3 * k:3 * k + 3, 3 + k] = -tB[i]
-        sol, *_ = np.linalg.lstsq(A, -tA[idx].ravel(), rcond=None)
-        return sol[:3]
+    fit = _translation_fit(M, tA, tB)
 
     rotating = np.flatnonzero(np.linalg.norm(M, axis=(1, 2)) > np.radians(3))
     if len(rotating) < 3:
         return
-    T = np.array([fit(rng.choice(rotating, 3, replace=False)) for _ in range(200)])
+    T = fit(np.array([rng.choice(rotating, 3, replace=False) for _ in range(200)]))
     # every hypothesis' directions at once (the same einsum per hypothesis); the first with the most inliers
     pred = np.einsum("nij,kj->kni", M, T) + tA
     cos = (pred * tB).sum(2) / np.maximum(np.linalg.norm(pred, axis=2), 1e-12)
@@ -649,6 +642,25 @@ def _translation_check(kept: dict, base_T_ee: dict, R_X, opt: PairwiseOptions, i
         if e > opt.translation_tol_deg:
             info["translation_rejected"].append(f"{a}-{b} ({e:.1f} deg)")
             kept.pop((a, b))
+
+
+def _translation_fit(M, tA, tB):
+    """t_X from sets of pairs: ``fit(idx)``, idx (..., n) indices into the pairs, gives the t_X (..., 3)
+    of each set that minimises sum_e |M_e t_X + t_A - lambda_e t_e|^2 over t_X and the lambdas.
+    Each lambda_e minimised out, that is the 3x3 normal equations of P_e (M_e t_X + t_A) = 0 with
+    P_e = I - u u^T the projection orthogonal to t_e: the minimiser of the full (3n, 3 + n) system,
+    for every set in one batched solve (one lstsq per triple cost 57 ms for the RANSAC's 200, 2-3
+    times a live update). A degenerate set gives some t_X (pinv), no error."""
+    u = tB / np.maximum(np.linalg.norm(tB, axis=1, keepdims=True), 1e-12)
+    PM = M - u[:, :, None] * np.einsum("ni,nij->nj", u, M)[:, None, :]  # P_e M_e
+    Pt = tA - u * (u * tA).sum(1, keepdims=True)  # P_e t_A
+
+    def fit(idx):
+        N = np.einsum("...nji,...njk->...ik", PM[idx], PM[idx])
+        r = -np.einsum("...nji,...nj->...i", PM[idx], Pt[idx])
+        return np.einsum("...ij,...j->...i", np.linalg.pinv(N), r)
+
+    return fit
 
 
 def rescue_pairs(ds, feats: dict, candidates, kept: dict, robot_info: dict, opt: PairwiseOptions, progress=True,
