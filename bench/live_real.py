@@ -393,12 +393,12 @@ def main():
                       f"{max((abs(v) for c in r['final_z'].values() for v in c), default=float('nan')):.3f}",
                       flush=True)
         full = {c: uncertainty_report(X, ref.covariance[c])["sigma_ee_frame"] for c, X in ref.ee_T_cam.items()}
-        rec = {"full_sigma_mm_deg": [max(s[a] for s in full.values() for a in ("x_mm", "y_mm", "z_mm")),
-                                     max(s[a] for s in full.values() for a in ("rx_deg", "ry_deg", "rz_deg"))],
+        full_sigma = [max(s[a] for s in full.values() for a in ("x_mm", "y_mm", "z_mm")),
+                      max(s[a] for s in full.values() for a in ("rx_deg", "ry_deg", "rz_deg"))]
+        rec = {"full_sigma_mm_deg": full_sigma,
                "batch_solve_s": batch_s, "batch_solve_cpu_s": batch_cpu_s, "frames": len(load_dataset(ds_dir).frames),
-               "summary": None,
+               "summary": summarise(runs, batch_s, batch_cpu_s, full_sigma),
                "runs": runs, "fixed_orders": fixed, "linearised_frames_to_3mm_0.2deg": linear}
-        rec["summary"] = summarise(runs, batch_s, batch_cpu_s, rec["full_sigma_mm_deg"])
         result["recordings"][name] = rec
         plot(name, runs, out / f"live_real_{name}.png")
         (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
@@ -460,11 +460,11 @@ def table(result) -> str:
                     continue
                 cell = f"{w['median']:.0f}" + (f" ({w['median'] / r0:.2f})" if r0 else "")
                 cells.append(cell + (f", never {w['never']}" if w["never"] else ""))
-            own, r0 = s.get("frames_to_own_sigma"), rec["summary"].get("recorded", {}).get("own_sigma_median")
+            own, own_rec = s.get("frames_to_own_sigma"), rec["summary"].get("recorded", {}).get("own_sigma_median")
             if own:
                 m = s.get("own_sigma_median")
                 never = sum(x is None for x in own)
-                cells.append(("never" if m is None else f"{m:.0f}" + (f" ({m / r0:.2f})" if r0 else "")) +
+                cells.append(("never" if m is None else f"{m:.0f}" + (f" ({m / own_rec:.2f})" if own_rec else "")) +
                              (f", never {never}" if never and m is not None else ""))
             lines.append(f"| {name} | " + (f"{sig[0]:.1f} mm / {sig[1]:.3f}°" if sig else "–") +
                          f" | {order} | {s['runs']} | " + " | ".join(cells) + " |")

@@ -31,7 +31,6 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from factors._lie import skew
 from factors.compression import make_compressed_factor
 
 

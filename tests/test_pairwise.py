@@ -347,4 +347,3 @@ def test_translation_fit_is_the_least_squares_solution_of_the_full_system():
         assert np.allclose(fit(idx), full, rtol=0, atol=1e-10)
     batch = np.array([rng.choice(n, 3, replace=False) for _ in range(20)])
     assert np.allclose(fit(batch), [fit(b) for b in batch], rtol=0, atol=1e-12)
-

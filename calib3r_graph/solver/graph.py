@@ -177,10 +177,10 @@ def scene_linearisation(o, w, values, keys, Ks, noise, whitening=None):
     linearised at ``values`` by hand: (its keys, its observations, their W (n, 3, 3), the
     whitened Jacobian J (3n, D) in the keys' order and tangent spaces, the whitened residual e
     (3n,)), or None where it makes no factor. The matches of zero weight are zero rows of W, J and
-    e (the same sums), or, where they are more than half, left out of all four. GTSAM's linearisation of that factor is A = J,
-    b = -e (its row compression is exact), so one Jacobian can serve both the linear system and
-    what else needs J (solver/camera_model.py). ``whitening``: the pair's point_sqrt_info at
-    ``values`` with unit weights, if already computed."""
+    e (the same sums), or, where they are more than half, left out of all four. GTSAM's
+    linearisation of that factor is A = J, b = -e (its row compression is exact), so one Jacobian
+    can serve both the linear system and what else needs J (solver/camera_model.py).
+    ``whitening``: the pair's point_sqrt_info at ``values`` with unit weights, if already computed."""
     keep = w > 0
     n_keep = int(keep.sum())
     if n_keep < MIN_FACTOR_MATCHES:
