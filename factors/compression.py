@@ -21,16 +21,22 @@ import gtsam
 import numpy as np
 
 
-def compressed_error(error_fn, measurement, dims, this, values, jacobians) -> np.ndarray:
+def compressed_error(error_fn, measurement, dims, this, values, jacobians, whole_fn=None) -> np.ndarray:
+    """``whole_fn(measurement, keys, values) -> (r, J)``: the error and its Jacobian as one (rows, D)
+    array, where the error function builds it whole (saves splitting it into blocks and stacking
+    them again); otherwise ``error_fn``'s blocks are stacked."""
     d = sum(dims)
     if jacobians is None:
         r = error_fn(measurement, this, values, None)
         out = np.zeros(d + 1)
         out[0] = np.linalg.norm(r)
         return out
-    blocks = [None] * len(dims)
-    r = error_fn(measurement, this, values, blocks)
-    J = np.hstack(blocks)
+    if whole_fn is not None:
+        r, J = whole_fn(measurement, this.keys(), values)
+    else:
+        blocks = [None] * len(dims)
+        r = error_fn(measurement, this, values, blocks)
+        J = np.hstack(blocks)
     lam, V = np.linalg.eigh(J.T @ J)
     keep = lam > lam[-1] * 1e-13  # numerically zero directions carry no information
     sqrt_l = np.sqrt(np.where(keep, lam, 0.0))
@@ -46,7 +52,9 @@ def compressed_error(error_fn, measurement, dims, this, values, jacobians) -> np
     return e
 
 
-def make_compressed_factor(error_fn, measurement, keys, dims) -> gtsam.CustomFactor:
-    """A CustomFactor of D + 1 rows equivalent to ``error_fn`` (whitened, unit noise)."""
+def make_compressed_factor(error_fn, measurement, keys, dims, whole_fn=None) -> gtsam.CustomFactor:
+    """A CustomFactor of D + 1 rows equivalent to ``error_fn`` (whitened, unit noise); ``whole_fn``:
+    see :func:`compressed_error`."""
     noise = gtsam.noiseModel.Unit.Create(sum(dims) + 1)
-    return gtsam.CustomFactor(noise, list(keys), partial(compressed_error, error_fn, measurement, list(dims)))
+    return gtsam.CustomFactor(noise, list(keys), partial(compressed_error, error_fn, measurement, list(dims),
+                                                         whole_fn=whole_fn))

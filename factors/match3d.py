@@ -136,6 +136,11 @@ def _cross_rows(q, A, out):
     out[:, :, 2] = q0 * A[:, :, 1] - q1 * A[:, :, 0]
 
 
+def _whitened_whole(m: Match3DMeasurement, keys, values: gtsam.Values):
+    """(whitened residual, whitened Jacobian (3N, D)) for the row compression."""
+    return match3d_whitened(m, keys, values)[:2]
+
+
 def make_match3d_factor(m: Match3DMeasurement, keys, compress: bool = True) -> gtsam.CustomFactor:
     """Bind a view pair's matches into one factor (whitening is already in ``m.sqrt_info``).
 
@@ -146,7 +151,7 @@ def make_match3d_factor(m: Match3DMeasurement, keys, compress: bool = True) -> g
     if compress:
         k = m.basis_a.shape[1] if with_basis else 0
         dims = [6, 6, 1, 1] + ([k, k] if with_basis else [])
-        return make_compressed_factor(match3d_error, m, keys, dims)
+        return make_compressed_factor(match3d_error, m, keys, dims, whole_fn=_whitened_whole)
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m.dim), list(keys), partial(match3d_error, m))
 
 

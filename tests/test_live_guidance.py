@@ -113,3 +113,44 @@ def test_candidate_jackknife_equals_the_linearised_jackknife_of_the_graph_with_i
         assert moved > 1e-5  # the candidate changes the samples (1e-5 rad or m)
         covs.append(plan._jackknife_after(sol, loo, D, U, 6)["cam0"])
     assert not np.allclose(covs[0], covs[1], rtol=0.05), "two candidates, one predicted jackknife"
+
+
+def test_candidate_views_are_limited_to_the_viewpoint_change_the_pairs_span(simulated):
+    """A candidate's scene factor is predicted only with views whose optical axis lies within the
+    largest angle of the solution's verified pairs: a camera turned past it about the scene's
+    centroid overlaps the scene (it is found with no limit) but is predicted to match nothing."""
+    from calib3r_graph.solver import plan
+
+    root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
+    session = LiveSession(root, predictions="sim", guide=False)
+    for f in load_dataset(root).frames[:6]:
+        session.add_frame(f)
+    sol, noise = session.sol, session.engine.last_noise
+    limit = plan.matched_view_angle_deg(sol)
+    pair_angles = [plan.optical_axis_angle_deg(sol.base_T_cam[o.view_a], sol.base_T_cam[o.view_b])
+                   for o in sol.observations]
+    assert 1.0 < limit == max(pair_angles) < 90.0
+    X = sol.ee_T_cam["cam0"]
+    centroid, _ = plan.scene_geometry(sol)
+    views = list(sol.base_T_cam)
+
+    def candidate(C, max_angle_deg=None):
+        E = C.compose(X.inverse())
+        return plan.candidate_factors(sol, session.preds, noise, E, np.random.default_rng(0),
+                                      points=plan.scene_points_by_view(sol), max_angle_deg=max_angle_deg)
+
+    # an existing view's own pose: within any limit, it overlaps
+    assert candidate(sol.base_T_cam[views[0]])[2] is not None
+    # turned about the centroid until every view is more than the limit away
+    T0 = sol.base_T_cam[views[0]]
+    axis = np.cross(T0.rotation().matrix()[:, 2], [0.0, 0.0, 1.0])
+    for turn in np.arange(limit, limit + 40.0, 2.0):
+        C = plan._look_from(T0, centroid, axis, np.radians(turn))
+        if min(plan.optical_axis_angle_deg(sol.base_T_cam[v], C) for v in views) > limit + 2.0:
+            break
+    else:
+        pytest.fail("no turn within 40 deg past the limit leaves every view beyond it")
+    unlimited = candidate(C, max_angle_deg=180.0)
+    assert unlimited[2] is not None and unlimited[3] >= plan.MIN_VISIBLE, unlimited[3]
+    limited = candidate(C)
+    assert limited[2] is None and len(limited[0]) == 1, (limit, turn)  # the robot factor alone

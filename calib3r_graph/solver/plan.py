@@ -3,7 +3,8 @@ calibration's uncertainty (expected information gain, at the current solution).
 
 For each candidate flange pose E the current final graph is extended with what a new
 recording would add: the reference camera's view at ``E * ee_T_cam`` with its robot pose
-factor, and a 3D match factor to the existing view that sees most of the same scene.
+factor, and a 3D match factor to the existing view that sees most of the same scene, among the
+views within the viewpoint change that the solution's own pairs span (:func:`matched_view_angle_deg`).
 That factor's matches are the existing view's matched points re-projected into the
 candidate (kept when in front of the camera and inside its image), whitened with the
 same calibrated noise as the real scene factors. The gain is
@@ -72,13 +73,33 @@ def distinct_points(points: dict) -> dict:
     return out
 
 
+def optical_axis_angle_deg(a_T_cam: gtsam.Pose3, b_T_cam: gtsam.Pose3) -> float:
+    """Angle (deg) between two cameras' optical axes (their z axes), both given in one frame."""
+    za, zb = a_T_cam.rotation().matrix()[:, 2], b_T_cam.rotation().matrix()[:, 2]
+    return float(np.degrees(np.arccos(np.clip(za @ zb, -1.0, 1.0))))
+
+
+def matched_view_angle_deg(sol) -> float:
+    """The largest optical-axis angle (deg) between the two views of any of ``sol``'s verified pairs:
+    the viewpoint change the frontend has shown that it matches on this scene (180 with no pairs).
+
+    A candidate's scene factor is predicted only with views within it (:func:`candidate_factors`):
+    on tabb_ds1 the verified pairs span at most 13.8 deg (median 5, 427 pairs), and the guide's
+    picks 16-33 deg from every view so far were predicted to match but matched nothing (docs/live.md)."""
+    angles = [optical_axis_angle_deg(sol.base_T_cam[o.view_a], sol.base_T_cam[o.view_b])
+              for o in sol.observations]
+    return max(angles) if angles else 180.0
+
+
 def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None,
-                      distinct=None):
+                      distinct=None, max_angle_deg=None):
     """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
     overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
     with its robot pose factor, and a 3D match factor to the existing view that sees most of the
-    same scene (see the module's docstring). ``points``: :func:`scene_points_by_view` of ``sol``;
-    ``distinct``: :func:`distinct_points` of them (the same choice, counted on fewer points)."""
+    same scene (see the module's docstring), among the views whose optical axis is within
+    ``max_angle_deg`` of the candidate's (:func:`matched_view_angle_deg` of ``sol`` when None).
+    ``points``: :func:`scene_points_by_view` of ``sol``; ``distinct``: :func:`distinct_points` of
+    them (the same choice, counted on fewer points)."""
     from calib3r_graph.solver.observations import PairObservations
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)
@@ -97,9 +118,11 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
         uv = Q[:, :2] / np.maximum(Q[:, 2:3], 1e-9) @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
         return (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h), P, Q, uv
 
+    if max_angle_deg is None:
+        max_angle_deg = matched_view_angle_deg(sol)
     best, best_count = None, -1
     for v in sol.base_T_cam:
-        if split_view_id(v)[0] != ref_cam:
+        if split_view_id(v)[0] != ref_cam or optical_axis_angle_deg(sol.base_T_cam[v], C) > max_angle_deg:
             continue
         if distinct is not None:
             U, n = distinct[v]
@@ -135,11 +158,13 @@ def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) ->
     before = [np.asarray(sol.covariance_model.get(c, sol.covariance[c])) for c in cameras]
     logdet_before = sum(np.linalg.slogdet(c)[1] for c in before)
     rng = np.random.default_rng(0)
+    max_angle = matched_view_angle_deg(sol)
     out = []
     for frame, E in candidates.items():
         graph = gtsam.NonlinearFactorGraph(sol.graph)
         values = gtsam.Values(sol.values)
-        new_factors, new_values, best, n_vis = candidate_factors(sol, preds, noise, E, rng, max_points)
+        new_factors, new_values, best, n_vis = candidate_factors(sol, preds, noise, E, rng, max_points,
+                                                                 max_angle_deg=max_angle)
         for f in new_factors:
             graph.add(f)
         values.insert(new_values)
@@ -347,11 +372,12 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     points = scene_points_by_view(sol)
     distinct = distinct_points(points)
+    max_angle = matched_view_angle_deg(sol)
     proposals, parts = [], []
     loo = _leave_one_out(sol, len(frames))
     for kind, E, frame in candidates:
         fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points,
-                                                  distinct=distinct)
+                                                  distinct=distinct, max_angle_deg=max_angle)
         S_out = S[np.ix_(out_idx, out_idx)]
         D, U = None, None
         if best is not None:
