@@ -73,33 +73,39 @@ def distinct_points(points: dict) -> dict:
     return out
 
 
-def optical_axis_angle_deg(a_T_cam: gtsam.Pose3, b_T_cam: gtsam.Pose3) -> float:
-    """Angle (deg) between two cameras' optical axes (their z axes), both given in one frame."""
-    za, zb = a_T_cam.rotation().matrix()[:, 2], b_T_cam.rotation().matrix()[:, 2]
+def view_axes(sol) -> dict:
+    """{view: its optical axis (unit z of ``base_T_cam``) in the base frame}, computed once for many
+    candidates (each compares its own axis with every view's)."""
+    return {v: T.rotation().matrix()[:, 2] for v, T in sol.base_T_cam.items()}
+
+
+def axis_angle_deg(za: np.ndarray, zb: np.ndarray) -> float:
+    """Angle (deg) between two unit optical axes given in one frame."""
     return float(np.degrees(np.arccos(np.clip(za @ zb, -1.0, 1.0))))
 
 
-def matched_view_angle_deg(sol) -> float:
+def matched_view_angle_deg(sol, axes=None) -> float:
     """The largest optical-axis angle (deg) between the two views of any of ``sol``'s verified pairs:
     the viewpoint change the frontend has shown that it matches on this scene (180 with no pairs).
+    ``axes``: :func:`view_axes` of ``sol``, if already computed.
 
     A candidate's scene factor is predicted only with views within it (:func:`candidate_factors`):
     on tabb_ds1 the verified pairs span at most 13.8 deg (median 5, 427 pairs), and the guide's
     picks 16-33 deg from every view so far were predicted to match but matched nothing (docs/live.md)."""
-    angles = [optical_axis_angle_deg(sol.base_T_cam[o.view_a], sol.base_T_cam[o.view_b])
-              for o in sol.observations]
+    axes = view_axes(sol) if axes is None else axes
+    angles = [axis_angle_deg(axes[o.view_a], axes[o.view_b]) for o in sol.observations]
     return max(angles) if angles else 180.0
 
 
 def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None,
-                      distinct=None, max_angle_deg=None):
+                      distinct=None, max_angle_deg=None, axes=None):
     """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
     overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
     with its robot pose factor, and a 3D match factor to the existing view that sees most of the
     same scene (see the module's docstring), among the views whose optical axis is within
     ``max_angle_deg`` of the candidate's (:func:`matched_view_angle_deg` of ``sol`` when None).
     ``points``: :func:`scene_points_by_view` of ``sol``; ``distinct``: :func:`distinct_points` of
-    them (the same choice, counted on fewer points)."""
+    them (the same choice, counted on fewer points); ``axes``: :func:`view_axes` of ``sol``."""
     from calib3r_graph.solver.observations import PairObservations
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)
@@ -118,11 +124,13 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
         uv = Q[:, :2] / np.maximum(Q[:, 2:3], 1e-9) @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
         return (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h), P, Q, uv
 
+    axes = view_axes(sol) if axes is None else axes
     if max_angle_deg is None:
-        max_angle_deg = matched_view_angle_deg(sol)
+        max_angle_deg = matched_view_angle_deg(sol, axes)
+    c_axis = C.rotation().matrix()[:, 2]
     best, best_count = None, -1
     for v in sol.base_T_cam:
-        if split_view_id(v)[0] != ref_cam or optical_axis_angle_deg(sol.base_T_cam[v], C) > max_angle_deg:
+        if split_view_id(v)[0] != ref_cam or axis_angle_deg(axes[v], c_axis) > max_angle_deg:
             continue
         if distinct is not None:
             U, n = distinct[v]
@@ -158,13 +166,14 @@ def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) ->
     before = [np.asarray(sol.covariance_model.get(c, sol.covariance[c])) for c in cameras]
     logdet_before = sum(np.linalg.slogdet(c)[1] for c in before)
     rng = np.random.default_rng(0)
-    max_angle = matched_view_angle_deg(sol)
+    axes = view_axes(sol)
+    max_angle = matched_view_angle_deg(sol, axes)
     out = []
     for frame, E in candidates.items():
         graph = gtsam.NonlinearFactorGraph(sol.graph)
         values = gtsam.Values(sol.values)
         new_factors, new_values, best, n_vis = candidate_factors(sol, preds, noise, E, rng, max_points,
-                                                                 max_angle_deg=max_angle)
+                                                                 max_angle_deg=max_angle, axes=axes)
         for f in new_factors:
             graph.add(f)
         values.insert(new_values)
@@ -372,12 +381,13 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     points = scene_points_by_view(sol)
     distinct = distinct_points(points)
-    max_angle = matched_view_angle_deg(sol)
+    axes = view_axes(sol)
+    max_angle = matched_view_angle_deg(sol, axes)
     proposals, parts = [], []
     loo = _leave_one_out(sol, len(frames))
     for kind, E, frame in candidates:
         fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points,
-                                                  distinct=distinct, max_angle_deg=max_angle)
+                                                  distinct=distinct, max_angle_deg=max_angle, axes=axes)
         S_out = S[np.ix_(out_idx, out_idx)]
         D, U = None, None
         if best is not None:
