@@ -15,8 +15,9 @@ have to remove and re-add most factors at every frame; what it saves, relinearis
 moved, is what a warm start saves too.
 
 Robust re-weighting and noise calibration run at every update, lagged by one (an update whose one
-step moves ee_T_cam by more than ``MOVE_SIGMAS`` of its previous total sigma runs ``solve``'s
-schedule instead, see ``_update``): the update's LM
+step moves ee_T_cam by more than ``EXTRA_STEP_SIGMAS`` of its previous total sigma takes a second
+step on the weights at its result, and one that still moves it by more than ``MOVE_SIGMAS`` runs
+``solve``'s schedule instead, see ``_update``): the update's LM
 uses the weights computed from the previous solution's residuals (new pairs: their RANSAC
 inliers, as ``solve``'s first round) and the previous update's variance factors; after the LM
 they are recomputed for the next update. The sequence of updates is thus the IRLS iteration
@@ -213,6 +214,8 @@ class Engine:
                 self.extra_steps += 1
                 weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
                 conf, weights, inliers = ctx.drop_weak(values, conf, weights, inliers)
+                for k in [k for k in start.keys() if not values.exists(k)]:  # the views it left out
+                    start.erase(k)
                 values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if not few and MOVE_SIGMAS and self._moved_far(state, values, keys):
                 values, conf, weights, inliers, calib = self._schedule(ctx, start, conf, inliers, history)
