@@ -31,17 +31,10 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _workdirs import add_work_args, work_dirs  # noqa: E402
-from live_real import prepare  # noqa: E402
-from calib3r_graph.io.results import covariance_in_ee_frame  # noqa: E402
+from live_real import ee_z, prepare  # noqa: E402
+from calib3r_graph.io.dataset import load_dataset  # noqa: E402
 from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
 from calib3r_graph.solver.graph import NoiseOptions  # noqa: E402
-
-
-def ee_z(X, ref, C) -> np.ndarray:
-    """(rx, ry, rz, x, y, z) of X against ref in the ee frame, in sigmas of C (ref's covariance)."""
-    d = gtsam.Pose3.Logmap(ref.between(X))
-    R = ref.rotation().matrix()
-    return np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(ref, C)))
 
 
 def main():
@@ -57,17 +50,18 @@ def main():
                        "| recording | rounds | move mm / deg | largest move in sigma (ee axis) | matches kept | CPU s |",
                        "|---|---|---|---|---|---|"]
     for name in args.recordings.split(","):
-        ds_dir, _, preds, _, _ = prepare(name, work, cache)
-        from calib3r_graph.io.dataset import load_dataset
-
+        ds_dir, _, preds, ref, (_, ref_cpu) = prepare(name, work, cache)  # ref: solve with its own options
         ds = load_dataset(ds_dir)
         opt = SolveOptions(noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0))),
                            progress=False)
         res = []
         for k in rounds:
-            t = time.process_time()
-            sol = solve(ds, preds, dataclasses.replace(opt, irls_rounds=k))
-            cpu = time.process_time() - t
+            if k == opt.irls_rounds:  # prepare's solve, the same options
+                sol, cpu = ref, ref_cpu
+            else:
+                t = time.process_time()
+                sol = solve(ds, preds, dataclasses.replace(opt, irls_rounds=k))
+                cpu = time.process_time() - t
             c = sorted(sol.ee_T_cam)[0]
             res.append((k, sol.ee_T_cam[c], np.asarray(sol.covariance[c]), sol.stats["matches_used"], cpu))
         X0, C0 = res[0][1], res[0][2]

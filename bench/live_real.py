@@ -88,6 +88,13 @@ def prepare(name, work: Path, cache: Path):
     return ds_dir, pname, preds, ref, (time.perf_counter() - t, time.process_time() - c)
 
 
+def ee_z(X, ref, C) -> np.ndarray:
+    """(rx, ry, rz, x, y, z) of X against ref in the ee frame, in sigmas of C (ref's covariance)."""
+    d = gtsam.Pose3.Logmap(ref.between(X))
+    R = ref.rotation().matrix()
+    return np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(ref, np.asarray(C))))
+
+
 def run_order(ds_dir, pname, cache, ref, order, seed, fixed=None):
     """One replay; ``fixed``: the frame order of a fixed order ("oracle", "file")."""
     session = LiveSession(ds_dir, predictions=pname, cache_dir=cache, guide=False, seed=seed)
@@ -117,10 +124,7 @@ def run_order(ds_dir, pname, cache, ref, order, seed, fixed=None):
     final = {}
     if session.sol is not None:
         for c, X in session.sol.ee_T_cam.items():
-            d = gtsam.Pose3.Logmap(ref.ee_T_cam[c].between(X))
-            R = X.rotation().matrix()
-            z = np.r_[R @ d[:3], R @ d[3:]] / np.sqrt(np.diag(covariance_in_ee_frame(X, ref.covariance[c])))
-            final[c] = z.tolist()
+            final[c] = ee_z(X, ref.ee_T_cam[c], ref.covariance[c]).tolist()
     return {"order": order, "seed": seed, "steps": steps, "wall_s": wall, "final_z": final,
             "frames_order": list(session.base_T_ee)}  # arrival order
 

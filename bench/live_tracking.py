@@ -36,8 +36,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _workdirs import add_work_args, work_dirs  # noqa: E402
-from irls_rounds import ee_z  # noqa: E402
-from live_real import prepare  # noqa: E402
+from live_real import ee_z, prepare  # noqa: E402
 from calib3r_graph.geometry import pose_error  # noqa: E402
 from calib3r_graph.live import engine as live_engine  # noqa: E402
 from calib3r_graph.live.run import replay  # noqa: E402
@@ -59,7 +58,7 @@ def track(ds_dir, pname, cache, order: str, seed: int, every: int) -> dict:
         if len(base_T_ee) % every == 0:
             ref = solve(dataclasses.replace(engine.ds, base_T_ee=dict(base_T_ee)), preds, engine.opt)
             c = sorted(ref.ee_T_cam)[0]
-            z = ee_z(sol.ee_T_cam[c], ref.ee_T_cam[c], np.asarray(ref.covariance[c]))
+            z = ee_z(sol.ee_T_cam[c], ref.ee_T_cam[c], ref.covariance[c])
             t, r = pose_error(sol.ee_T_cam[c], ref.ee_T_cam[c])
             row.update(z=z.tolist(), max_abs_z=float(np.abs(z).max()), mm=1e3 * t, deg=r)
         rows.append(row)
