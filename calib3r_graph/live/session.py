@@ -89,10 +89,11 @@ class Update:
                 "floor": self.floor, "message": self.message, "skipped": [list(s) for s in self.skipped]}
 
 
-def session_dataset(dataset_dir) -> Dataset:
+def session_dataset(dataset_dir, name_bad_rows: bool = False) -> Dataset:
     """The dataset's cameras, intrinsics and robot unit, and its robot poses: frames are added as
     they arrive, so a missing or header-only pose file is fine, and a row that does not parse
-    (a capture script's NaN) leaves out that frame only (:func:`read_pose_rows` names it)."""
+    (a capture script's NaN) leaves out that frame only (:func:`read_pose_rows` names it; with
+    ``name_bad_rows`` a warning says so, once: a replay never adds that frame)."""
     root = Path(dataset_dir)
     quiet = logging.getLogger("calib3r_graph.io")  # images waiting for their pose row are expected here
     level = quiet.level
@@ -116,7 +117,11 @@ def session_dataset(dataset_dir) -> Dataset:
             shutil.copy(meta_path, Path(tmp) / "dataset.yaml")
             (Path(tmp) / poses).write_text("frame,x,y,z,qx,qy,qz,qw\nplaceholder,0,0,0,0,0,0,1\n")
             ds = load_dataset(tmp)
-        good = {f: gtsam.Pose3(T) for f, T, _ in read_pose_rows(root / poses, ds.robot_unit) if T is not None}
+        rows = read_pose_rows(root / poses, ds.robot_unit)
+        for _, T, why in rows:
+            if T is None and name_bad_rows:
+                log.warning("%s; that frame is left out", why)
+        good = {f: gtsam.Pose3(T) for f, T, _ in rows if T is not None}
         return dataclasses.replace(ds, root=root, base_T_ee=good)
     finally:
         quiet.setLevel(level)
@@ -164,7 +169,7 @@ class LiveSession:
                  pixel_from_predictions: bool | None = None):
         from calib3r_graph.live.sources import IncrementalPairwise, RecordedPredictions
 
-        self.ds = session_dataset(dataset_dir)
+        self.ds = session_dataset(dataset_dir, name_bad_rows=True)
         self.poses_known = dict(self.ds.base_T_ee)  # the recording's, for frames added by id alone
         self.target = (float(target_mm), float(target_deg))
         self.out = Path(out) if out else None
