@@ -117,6 +117,26 @@ def test_a_bad_frame_is_named_and_skipped(simulated, tmp_path):
     assert (out / "live.jsonl").read_text().startswith(before)
 
 
+def test_a_replay_names_a_pose_row_that_does_not_parse_once(simulated, tmp_path, caplog):
+    """A robot_poses.csv row with a NaN is said once, as a warning naming its frame, and the replay goes
+    on without that frame (it was left out silently before)."""
+    import logging
+    import shutil
+
+    root = tmp_path / "ds"
+    shutil.copytree(simulated(**SIM), root)
+    rows = (root / "robot_poses.csv").read_text().splitlines()
+    bad = rows[3].split(",")
+    rows[3] = ",".join([bad[0], "nan", *bad[2:]])
+    (root / "robot_poses.csv").write_text("\n".join(rows) + "\n")
+    with caplog.at_level(logging.WARNING, logger="calib3r_graph"):
+        session = LiveSession(root, predictions="sim", guide=False)
+        ups = replay(session, "recorded")
+    said = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and bad[0] in r.getMessage()]
+    assert len(said) == 1 and "left out" in said[0]
+    assert bad[0] not in ups[-1].frames and len(ups[-1].frames) == len(rows) - 2 and ups[-1].ee_T_cam
+
+
 def test_guidance_stays_in_the_visited_region_and_looks_at_the_scene(simulated):
     from calib3r_graph.solver import plan
     from calib3r_graph.solver.plan import candidate_poses, scene_geometry
@@ -177,6 +197,33 @@ def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_
     assert more[-1].frames == [r.split(",")[0] for r in rows[1:]]
     steps = [json.loads(x)["step"] for x in (out / "live.jsonl").read_text().splitlines()]
     assert steps == list(range(1, len(steps) + 1))
+
+
+@pytest.mark.parametrize("kind", ["robot_poses.csv", "one pose file"])
+def test_watch_waits_for_the_line_end_of_a_last_pose_row(tmp_path, kind):
+    """A capture script's row caught mid-write can cut a number and still parse (x = 0.1 of 0.1234): a
+    last line without its line end is read only once the file has not changed over two polls, so a
+    row completed in between is read whole; one left so is read as it stands, a poll later."""
+    import os
+
+    from calib3r_graph.live.poses import PoseFiles, RobotPosesCsv
+
+    f = tmp_path / ("robot_poses.csv" if kind == "robot_poses.csv" else "poses.txt")
+    head = "frame,x,y,z,qx,qy,qz,qw\n" if kind == "robot_poses.csv" else ""
+    first = "0001,0.5,0.2,0.3,0,0,0,1\n" if kind == "robot_poses.csv" else "1 0.5 0.2 0.3 0 0 0 1\n"
+    whole = "0002,0.1234,0.2,0.3,0,0,0,1\n" if kind == "robot_poses.csv" else "2 0.1234 0.2 0.3 0 0 0 1\n"
+    poses = RobotPosesCsv(f, "m") if kind == "robot_poses.csv" else PoseFiles(str(f), pose_format="xyz-quat-xyzw")
+    f.write_text(head + first + whole[:-1])  # the second row all there but its line end
+    assert [r[0] for r in poses.poll()] == ["0001"]
+    f.write_text(head + first + whole)  # the line end arrives: read whole
+    os.utime(f, ns=(1, 2))
+    rows = poses.poll()
+    assert [r[0] for r in rows] == ["0001", "0002"] and abs(rows[1][1][0, 3] - 0.1234) < 1e-12
+    # left without its line end: held back at first, then read as it stands (the file settled)
+    cut = "0003,0.1,0.2,0.3,0,0,0,1" if kind == "robot_poses.csv" else "3 0.1 0.2 0.3 0 0 0 1"
+    f.write_text(head + first + whole + cut)
+    assert [r[0] for r in poses.poll()] == ["0001", "0002"]
+    assert [r[0] for r in poses.poll()] == ["0001", "0002", "0003"]
 
 
 def test_watch_reads_per_frame_json_poses_as_import_files_does(simulated, tmp_path):

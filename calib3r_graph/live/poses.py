@@ -1,7 +1,7 @@
 """Where ``live --watch`` reads the robot poses of the frames a capture script adds.
 
 * :class:`RobotPosesCsv`: the dataset's own pose file (``dataset.yaml``'s ``robot.poses``, usually
-  ``robot_poses.csv``), row by row (``session.read_pose_rows``).
+  ``robot_poses.csv``), row by row (:func:`read_pose_rows`).
 * :class:`PoseFiles`: any pose file that ``import files`` reads (``io/pose_files.py``: one file per
   frame, JSON/YAML/CSV/text/.npy, in a folder or glob, or one file with a pose per line or entry),
   with ``--pose-format``, ``--pose-key``, ``--unit`` and ``--direction`` as there. The frame id is
@@ -14,25 +14,90 @@ reason naming its file and line. A per-frame file that does not parse yet may be
 named and skipped only once it stops changing (same size and time over two polls).
 """
 
+import csv
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from calib3r_graph.errors import InputError
+from calib3r_graph.io.dataset import read_robot_poses
 from calib3r_graph.io.pose_files import PER_FRAME_SUFFIXES, expand, frame_numbers, parse_format, read_poses
 
 STRUCTURED = (".npy", ".json", ".yaml", ".yml")
 
 
 class RobotPosesCsv:
+    """A last row without its line end may be half written (a capture script's write caught mid-way,
+    which can cut a number and still parse): it is read only once the file has not changed over two
+    polls."""
+
     def __init__(self, path: Path, unit: str):
         self.path, self.unit = Path(path), unit
+        self._tail = {}  # the file -> (size, mtime) when its last line was last seen without a line end
 
     def poll(self) -> list:
-        from calib3r_graph.live.session import read_pose_rows
+        text, stat = _read(self.path)
+        if text is None:
+            return []
+        rows = read_pose_rows(self.path, self.unit, text)
+        if rows and open_tail(text) and not _settled(self._tail, self.path, stat):
+            rows = rows[:-1]
+        return rows
 
-        return read_pose_rows(self.path, self.unit)
+
+def read_pose_rows(path: Path, unit: str, text: str | None = None) -> list:
+    """[(frame, base_T_ee 4x4 or None, reason)] of every row of a robot_poses.csv being written: a row
+    that does not parse (NaN, not unit, too few columns) is named with its reason instead of failing
+    the whole file, as ``read_robot_poses`` would (each row goes through it alone). ``text``: the
+    file's text as already read."""
+    if text is None:
+        if not path.is_file():
+            return []
+        text = path.read_text(encoding="utf-8-sig")
+    lines = text.splitlines()
+    out = []
+    for i, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        frame = next(csv.reader([line]))[0].strip()
+        with tempfile.TemporaryDirectory() as tmp:
+            one = Path(tmp) / "row.csv"
+            one.write_text(lines[0] + "\n" + line + "\n")
+            try:
+                pose = read_robot_poses(one, unit, "a row")
+                out.append((frame, next(iter(pose.values())).matrix(), None))
+            except InputError as e:
+                out.append((frame, None, f"{path}: row {i} (frame {frame}): {e.what}"))
+    return out
+
+
+def _read(p: Path) -> tuple:
+    """(the file's text, its (size, mtime) when read), or (None, None) where it is not there."""
+    try:
+        st = p.stat()
+        return p.read_text(encoding="utf-8-sig"), (st.st_size, st.st_mtime_ns)
+    except (OSError, UnicodeDecodeError):
+        return None, None
+
+
+def open_tail(text: str) -> bool:
+    """Whether the text's last line has content and no line end yet."""
+    return bool(text) and not text.endswith(("\n", "\r")) and bool(text.splitlines()[-1].strip())
+
+
+def _settled(seen: dict, f: Path, now=None) -> bool:
+    """Whether ``f`` has not changed since the last call for it (not half written): ``seen`` keeps each
+    file's (size, mtime) from that call; ``now``: its (size, mtime) where already known."""
+    if now is None:
+        try:
+            st = f.stat()
+        except OSError:
+            return False
+        now = (st.st_size, st.st_mtime_ns)
+    before = seen.get(f)
+    seen[f] = now
+    return before == now
 
 
 class PoseFiles:
@@ -45,6 +110,7 @@ class PoseFiles:
         self.spec, self.fmt, self.key = str(spec), parse_format(pose_format or "matrix"), pose_key
         self.unit, self.direction = unit, direction
         self._failed = {}  # file -> (size, mtime) when it last failed to parse
+        self._tail = {}  # file -> (size, mtime) when its last line was last seen without a line end
 
     def _base_T_ee(self, M) -> np.ndarray:
         from calib3r_graph.importers import DIRECTIONS, apply_convention
@@ -78,25 +144,33 @@ class PoseFiles:
 
     def _settled(self, f: Path) -> bool:
         """Whether a file that failed to parse has not changed since it last failed (not half written)."""
-        try:
-            st = f.stat()
-        except OSError:
-            return False
-        now, before = (st.st_size, st.st_mtime_ns), self._failed.get(f)
-        self._failed[f] = now
-        return before == now
+        return _settled(self._failed, f)
 
     def _one_file(self, p: Path) -> list:
         """One file of every frame's pose: read whole; where that fails, a text file line by line (each
-        line through the same reader, so one bad line skips one frame), else nothing until it changes."""
-        try:
-            recs = read_poses(str(p), self.fmt, self.key)
-            return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
-        except InputError as e:
-            if p.suffix.lower() in STRUCTURED:
+        line through the same reader, so one bad line skips one frame), else nothing until it changes.
+        A text file's last line without its line end waits as :class:`RobotPosesCsv`'s does."""
+        if p.suffix.lower() in STRUCTURED:
+            try:
+                recs = read_poses(str(p), self.fmt, self.key)
+                return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
+            except InputError as e:
                 return [] if not self._settled(p) else [(str(p), None, f"{e.path}: {e.what}")]
+        text, stat = _read(p)
+        if text is None:
+            return []
+        if open_tail(text) and not _settled(self._tail, p, stat):
+            text = "\n".join(text.splitlines()[:-1]) + "\n"
+        with tempfile.TemporaryDirectory() as tmp:
+            copy = Path(tmp) / p.name  # the text as read now, so the whole read and the lines agree
+            copy.write_text(text)
+            try:
+                recs = read_poses(str(copy), self.fmt, self.key)
+                return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
+            except InputError:
+                pass
         out = []
-        lines = [ln for ln in p.read_text(encoding="utf-8-sig").splitlines()]
+        lines = text.splitlines()
         with tempfile.TemporaryDirectory() as tmp:
             one = Path(tmp) / f"line{p.suffix}"
             index = 0

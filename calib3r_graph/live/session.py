@@ -31,6 +31,7 @@ from calib3r_graph.io.dataset import Dataset, load_dataset, pose_to_row
 from calib3r_graph.io.output import atomic_write_json, atomic_write_text
 from calib3r_graph.io.results import calibration_json, covariance_in_ee_frame, sigma_ee_frame, uncertainty_report
 from calib3r_graph.live.engine import Engine
+from calib3r_graph.live.poses import open_tail, read_pose_rows
 from calib3r_graph.solver.solve import SolveOptions
 
 log = logging.getLogger(__name__)
@@ -117,42 +118,15 @@ def session_dataset(dataset_dir, name_bad_rows: bool = False) -> Dataset:
             shutil.copy(meta_path, Path(tmp) / "dataset.yaml")
             (Path(tmp) / poses).write_text("frame,x,y,z,qx,qy,qz,qw\nplaceholder,0,0,0,0,0,0,1\n")
             ds = load_dataset(tmp)
-        rows = read_pose_rows(root / poses, ds.robot_unit)
-        for _, T, why in rows:
-            if T is None and name_bad_rows:
+        text = (root / poses).read_text(encoding="utf-8-sig") if (root / poses).is_file() else ""
+        rows = read_pose_rows(root / poses, ds.robot_unit, text)
+        for i, (_, T, why) in enumerate(rows):  # (a last row without its line end may be being written)
+            if T is None and name_bad_rows and not (i == len(rows) - 1 and open_tail(text)):
                 log.warning("%s; that frame is left out", why)
         good = {f: gtsam.Pose3(T) for f, T, _ in rows if T is not None}
         return dataclasses.replace(ds, root=root, base_T_ee=good)
     finally:
         quiet.setLevel(level)
-
-
-def read_pose_rows(path: Path, unit: str) -> list:
-    """[(frame, base_T_ee 4x4 or None, reason)] of every row of a robot_poses.csv being written: a row
-    that does not parse (NaN, not unit, too few columns) is named with its reason instead of failing
-    the whole file, as ``read_robot_poses`` would (each row goes through it alone)."""
-    import csv
-    import tempfile
-
-    from calib3r_graph.io.dataset import read_robot_poses
-
-    if not path.is_file():
-        return []
-    lines = path.read_text(encoding="utf-8-sig").splitlines()
-    out = []
-    for i, line in enumerate(lines[1:], start=2):
-        if not line.strip():
-            continue
-        frame = next(csv.reader([line]))[0].strip()
-        with tempfile.TemporaryDirectory() as tmp:
-            one = Path(tmp) / "row.csv"
-            one.write_text(lines[0] + "\n" + line + "\n")
-            try:
-                pose = read_robot_poses(one, unit, "a row")
-                out.append((frame, next(iter(pose.values())).matrix(), None))
-            except InputError as e:
-                out.append((frame, None, f"{path}: row {i} (frame {frame}): {e.what}"))
-    return out
 
 
 class LiveSession:
