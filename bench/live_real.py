@@ -12,7 +12,9 @@ simulated dataset (its own predictions), the recording is replayed through ``Liv
   each recording's own accuracy as the tolerance;
 * ``--orders ...,oracle``: a greedy order that knows the full result (:func:`oracle_order`, on the
   full result's linearised graph), replayed through the real engine as a fixed order, with the
-  linearised model's own frames-to-3 mm for it and for the recorded order; ``--order-file`` replays
+  linearised model's own frames-to-3 mm for it and for the recorded order; ``sigma_oracle``: the
+  guide's own criterion with each frame's true factors (:func:`sigma_oracle_order`), the order a guide
+  that predicted every match exactly would take; ``--order-file`` replays
   any fixed order;
 * the latency of each update (the solver's part; the frontend's feature extraction, pair geometry
   and aggregation and the guidance's scoring reported apart) and all updates against one batch solve;
@@ -168,15 +170,38 @@ class LinearModel:
                 touched[idx] = True
         return H, b, touched
 
-    def error(self, frames: set, state):
-        """{camera: (mm, deg)} of the subset's estimate to the full result, or None where the subset
-        does not determine it (singular, or a step past the linear range). ``state``: of ``frames``."""
+    def covariance(self, frames: set, state):
+        """{camera: the noise model's covariance of ee_T_cam} from the subset's information (the inverse
+        of its reduced H), or None where the subset does not determine it. ``state``: of ``frames``."""
+        H, _, touched = self._with_gauge(frames, state)
+        keep = np.flatnonzero(touched)
+        try:
+            Hinv = np.linalg.inv(np.linalg.cholesky(H[np.ix_(keep, keep)]))
+        except np.linalg.LinAlgError:
+            return None
+        pos = {k: i for i, k in enumerate(keep)}
+        out = {}
+        for c, a in self.he.items():
+            if not touched[a]:
+                return None
+            cols = [pos[a + i] for i in range(6)]
+            L = Hinv[:, cols]
+            out[c] = L.T @ L
+        return out
+
+    def _with_gauge(self, frames: set, state):
         H, b, touched = state[0].copy(), state[1].copy(), state[2].copy()
         for idx, AtA, Atb, col_frames in self.gauge:
             keep = np.array([f is None or f in frames for f in col_frames])
             H[np.ix_(idx[keep], idx[keep])] += AtA[np.ix_(keep, keep)]
             b[idx[keep]] += Atb[keep]
         touched[self.gauge_cols] = True
+        return H, b, touched
+
+    def error(self, frames: set, state):
+        """{camera: (mm, deg)} of the subset's estimate to the full result, or None where the subset
+        does not determine it (singular, or a step past the linear range). ``state``: of ``frames``."""
+        H, b, touched = self._with_gauge(frames, state)
         keep = np.flatnonzero(touched)
         try:
             L = np.linalg.cholesky(H[np.ix_(keep, keep)])
@@ -231,6 +256,61 @@ def oracle_order(ref, base_T_ee: dict, progress=True) -> tuple[list, list]:
     return order + [f for f in base_T_ee if f not in solved], scores
 
 
+def sigma_score(ref, base_T_ee: dict, frames: list, covs) -> float:
+    """The guide's own criterion (solver/plan.py's ``objective``, the scale's term left out) with the
+    subset's true information: the root sum of squares of sigma / (3 mm, 0.2 deg) over the six ee axes,
+    summed over the cameras, the sigma being the subset's noise-model covariance (:meth:`LinearModel.covariance`) plus the full
+    result's systematic part scaled by the squared systematic-error gain of the subset's motion
+    against the full one's (plan.score_candidates' first pass)."""
+    from calib3r_graph.solver.plan import objective
+    from calib3r_graph.solver.uncertainty import systematic_error_gain
+
+    if covs is None:
+        return float("inf")
+    g_full = systematic_error_gain(base_T_ee, sorted(f for f in base_T_ee))[0]
+    g = systematic_error_gain(base_T_ee, frames)[0]
+    f = (g / g_full) ** 2 if np.isfinite(g) and g_full > 0 else float("inf")
+    if not np.isfinite(f):
+        return float("inf")
+    total = {c: C + f * np.asarray(ref.systematic[c].covariance) for c, C in covs.items()}
+    return objective(total, ref.ee_T_cam, {c: 0.0 for c in total}, 1.0, NEAR_MM, NEAR_DEG)
+
+
+def sigma_oracle_order(ref, base_T_ee: dict, progress=True) -> list:
+    """Greedy on the guide's criterion with what the guide can only predict known: at each step the unused
+    frame whose addition gives the smallest :func:`sigma_score` on the full result's linearised graph
+    (:class:`LinearModel`: the frame's true factors to the frames used). It does not know the full
+    result, so unlike :func:`oracle_order` it cannot pick frames whose errors happen to cancel: it is
+    what a guide that predicted every match exactly would do. The start as :func:`oracle_order`'s."""
+    from tqdm import tqdm
+
+    from calib3r_graph.io.predictions import split_view_id
+
+    model = LinearModel(ref)
+    solved = {split_view_id(v)[1] for v in ref.base_T_cam}
+    frames = [f for f in base_T_ee if f in solved]
+    order = [frames[0]]
+    cur = model.state(set(order))
+    rest = frames[1:]
+    bar = tqdm(total=len(rest), desc="sigma oracle", disable=not progress, leave=False)
+    while rest:
+        tries = {}
+        for g in rest:
+            S = set(order) | {g}
+            tries[g] = sigma_score(ref, base_T_ee, order + [g], model.covariance(S, model.state(S, cur, g)))
+        best = min(rest, key=lambda g: tries[g])
+        if not np.isfinite(tries[best]):
+            R = [base_T_ee[f].rotation() for f in order]
+            best = max(rest, key=lambda g: min(np.linalg.norm(gtsam.Rot3.Logmap(r.between(base_T_ee[g].rotation())))
+                                               for r in R))
+        order.append(best)
+        cur = model.state(set(order), cur, best)
+        rest.remove(best)
+        bar.update()
+    bar.close()
+    return order + [f for f in base_T_ee if f not in solved]
+
+
 def linear_scores(ref, order: list) -> list:
     """:func:`near_score` of the linearised estimate after each frame of ``order``."""
     model = LinearModel(ref)
@@ -264,7 +344,7 @@ def summarise(runs, batch_s, batch_cpu_s=None, full_sigma=None):
     """Per order; ``full_sigma``: the full result's largest total sigma (mm, deg), the tolerance of
     ``frames_to_own_sigma`` (its own accuracy, where 3 mm / 0.2 deg is finer or coarser than that)."""
     out = {}
-    for order in ("recorded", "guided", "random", "oracle", "file"):
+    for order in ("recorded", "guided", "random", "oracle", "sigma_oracle", "file"):
         rs = [r for r in runs if r["order"] == order]
         if not rs:
             continue
@@ -325,7 +405,8 @@ def plot(name, runs, path):
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    colours = {"recorded": "C0", "guided": "C3", "random": "C7", "oracle": "C2", "file": "C1"}
+    colours = {"recorded": "C0", "guided": "C3", "random": "C7", "oracle": "C2", "sigma_oracle": "C4",
+               "file": "C1"}
     for r in runs:
         xs = [s["frames"] for s in r["steps"][:-1] if "cameras" in s]
         if not xs:
@@ -357,7 +438,8 @@ def main():
                     help="guided orders per recording: seed 0 starts at the first recorded frame, the others at a "
                          "seeded random frame")
     ap.add_argument("--orders", default="recorded,guided,random",
-                    help="any of recorded, guided, random, oracle (greedy on the linearised full result)")
+                    help="any of recorded, guided, random, oracle (greedy on the linearised full result), "
+                         "sigma_oracle (greedy on the guide's criterion with the true factors)")
     ap.add_argument("--order-file", help="also replay this fixed order: frame ids, whitespace separated")
     add_work_args(ap, "live_real")
     args = ap.parse_args()
@@ -378,6 +460,11 @@ def main():
             t = time.perf_counter()
             fixed["oracle"], _ = oracle_order(ref, base_T_ee, progress=False)
             print(f"  oracle order ({time.perf_counter() - t:.0f} s): {' '.join(fixed['oracle'])}", flush=True)
+        if "sigma_oracle" in wanted:
+            t = time.perf_counter()
+            fixed["sigma_oracle"] = sigma_oracle_order(ref, base_T_ee, progress=False)
+            print(f"  sigma oracle order ({time.perf_counter() - t:.0f} s): {' '.join(fixed['sigma_oracle'])}",
+                  flush=True)
         if args.order_file:
             fixed["file"] = [x.strip() for x in Path(args.order_file).read_text().split() if x.strip()]
             wanted.append("file")
@@ -387,7 +474,8 @@ def main():
             linear[o] = linear_frames_to_near(sc, list(range(1, len(order) + 1)))
             print(f"  {o}: the linearised model puts it within 3 mm / 0.2 deg after {linear[o]} frames", flush=True)
         orders = (("recorded", [0]), ("guided", range(args.guided_seeds)),
-                  ("random", range(args.seed_start, args.seed_start + args.seeds)), ("oracle", [0]), ("file", [0]))
+                  ("random", range(args.seed_start, args.seed_start + args.seeds)), ("oracle", [0]), ("sigma_oracle", [0]),
+                  ("file", [0]))
         for order, seeds in [(o, s) for o, s in orders if o in wanted]:
             for seed in seeds:
                 r = run_order(ds_dir, pname, cache / name, ref, order, seed, fixed.get(order))

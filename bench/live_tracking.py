@@ -10,10 +10,14 @@ update's ee_T_cam is compared with it in ``solve``'s own total sigma per ee axis
 
     .venv/bin/python bench/live_tracking.py [--recordings rwhe_kuka_2] [--orders recorded,guided:0,random:3]
         [--every 1] [--extra-step-sigmas 1.5] [--work /tmp/live_real] [--cache /tmp/live_real/cache]
-        [--tag NAME]
+        [--tag NAME] [--batch-frontend]
 
 ``--orders``: ``recorded``, ``guided:SEED`` (the guided replay from ``live_real.py``'s start
-``SEED``) or ``random:SEED``. ``--extra-step-sigmas``: the engine's ``EXTRA_STEP_SIGMAS`` for this
+``SEED``), ``random:SEED`` or ``file:PATH`` (a fixed order: frame ids, whitespace separated). Each
+compared update and its ``solve`` are also compared with the full recording's result
+(``update_to_full_mm_deg``, ``solve_to_full_mm_deg``): what the engine adds to the error of the frames
+so far; with ``--batch-frontend`` also the batch pairwise frontend run on those frames alone, then
+``solve`` (``batch_frontend_to_full_mm_deg``): what the incremental frontend adds. ``--extra-step-sigmas``: the engine's ``EXTRA_STEP_SIGMAS`` for this
 run (0: no re-weighted second step), to measure it against the engine without it. Uses
 ``bench/live_real.py``'s prepared recordings. Writes ``OUT/live_tracking_<tag>.json`` and prints
 one line per replay: the largest and the median |z| over the updates from 15 poses, the updates
@@ -45,8 +49,11 @@ from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW  # noqa: E402
 from calib3r_graph.solver.solve import solve  # noqa: E402
 
 
-def track(ds_dir, pname, cache, order: str, seed: int, every: int) -> dict:
-    """One replay with ``solve`` beside every ``every``-th update."""
+def track(ds_dir, pname, cache, order, seed: int, every: int, full=None, batch_frontend=False) -> dict:
+    """One replay with ``solve`` beside every ``every``-th update; ``order``: as ``replay`` takes it;
+    ``full``: the full recording's result, to which both are also compared (mm, deg);
+    ``batch_frontend``: also the batch pairwise frontend run on the frames so far alone, then ``solve``,
+    against ``full`` (what a batch run on those frames gives)."""
     session = LiveSession(ds_dir, predictions=pname, cache_dir=cache, guide=False, seed=seed)
     engine, rows = session.engine, []
     update = engine.update
@@ -61,6 +68,18 @@ def track(ds_dir, pname, cache, order: str, seed: int, every: int) -> dict:
             z = ee_z(sol.ee_T_cam[c], ref.ee_T_cam[c], ref.covariance[c])
             t, r = pose_error(sol.ee_T_cam[c], ref.ee_T_cam[c])
             row.update(z=z.tolist(), max_abs_z=float(np.abs(z).max()), mm=1e3 * t, deg=r)
+            if full is not None:
+                for who, X in (("update", sol.ee_T_cam[c]), ("solve", ref.ee_T_cam[c])):
+                    t, r = pose_error(X, full.ee_T_cam[c])
+                    row[f"{who}_to_full_mm_deg"] = [1e3 * t, r]
+            if full is not None and batch_frontend and pname is None:
+                from calib3r_graph.frontends.pairwise import pairwise_predictions
+
+                sub = dataclasses.replace(engine.ds, base_T_ee=dict(base_T_ee))
+                bp = pairwise_predictions(sub, None, cache_dir=cache, progress=False)
+                bs = solve(sub, bp, engine.opt)
+                t, r = pose_error(bs.ee_T_cam[c], full.ee_T_cam[c])
+                row["batch_frontend_to_full_mm_deg"] = [1e3 * t, r]
         rows.append(row)
         return sol
 
@@ -81,6 +100,8 @@ def main():
     ap.add_argument("--every", type=int, default=1)
     ap.add_argument("--extra-step-sigmas", type=float, default=live_engine.EXTRA_STEP_SIGMAS)
     ap.add_argument("--tag", default="run")
+    ap.add_argument("--batch-frontend", action="store_true",
+                    help="also run the batch frontend on the frames so far, then solve, against the full result")
     add_work_args(ap, "live_real")
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
@@ -88,11 +109,13 @@ def main():
     work, cache, out = work_dirs(args)
     runs = []
     for name in args.recordings.split(","):
-        ds_dir, pname, _, _, _ = prepare(name, work, cache)
+        ds_dir, pname, _, full, _ = prepare(name, work, cache)
         for spec in args.orders.split(","):
             order, _, seed = spec.partition(":")
-            r = track(ds_dir, pname, cache / name, order, int(seed or 0), args.every)
-            r.update(recording=name, extra_step_sigmas=args.extra_step_sigmas)
+            if order == "file":
+                order, seed = Path(seed).read_text().split(), 0
+            r = track(ds_dir, pname, cache / name, order, int(seed or 0), args.every, full, args.batch_frontend)
+            r.update(recording=name, extra_step_sigmas=args.extra_step_sigmas, spec=spec)
             runs.append(r)
             print(f"{name} {spec} (extra step from {args.extra_step_sigmas} sigma): from 15 poses |z| to solve "
                   f"max {r['max_abs_z_from_15']:.2f}, median {r['median_abs_z_from_15']:.2f}, "

@@ -449,7 +449,7 @@ class _Context:
         self.covariances = {} if covariances is None else covariances  # pair -> (obs, noise, point_covariances)
         self.linearised_at = None  # the values the last linear system was linearised at
         self.dropped = {}  # view -> why drop_weak left it out of this update
-        self.camera_terms = None  # its pairs' camera-model terms (camera_model.pair_sensitivity)
+        self._camera_lins = None  # what the last linear system's camera-model terms are computed from
 
     def terms(self, values, observations=None) -> tuple[list, list]:
         """(match residuals, nominal whitening) per pair at ``values``, what ``robust_weights`` and the
@@ -551,11 +551,13 @@ class _Context:
         """:func:`factor_system` of :meth:`graph` with these weights and calibration at ``values``,
         its 3D match factors linearised here by hand (graph.scene_linearisation: the same numbers as
         GTSAM's), so that each pair's one Jacobian also gives its camera-model terms
-        (``camera_terms``, for :meth:`solution`), consistent with H by construction. On rwhe_kuka_1's
+        (:meth:`camera_terms`, for :meth:`solution`), consistent with H by construction. On rwhe_kuka_1's
         live updates at 15-30 poses this halved the camera model's cost (a second linearisation and
-        a second Jacobian per pair, 0.27 s an update). ``camera=False``: a step whose system serves
-        no covariance (the few-pose schedule's re-weighting rounds) leaves the camera terms out."""
-        self.linearised_at, self.camera_terms = values, None
+        a second Jacobian per pair, 0.27 s an update). The terms are computed from the kept Jacobians
+        only when the solution asks for them, so a system that a second step replaces costs none.
+        ``camera=False``: a step whose system serves no covariance (the few-pose schedule's
+        re-weighting rounds) keeps nothing for them."""
+        self.linearised_at, self._camera_lins = values, None
         if self.opt.reprojection:  # its reprojection factors are GTSAM's to linearise
             return factor_system(self.graph(values, weights, calib), values)
         from calib3r_graph.solver.systematic import key_offsets
@@ -566,20 +568,29 @@ class _Context:
         H, _, factors = factor_system(rest, values, offsets)
         noise, scale = self.noise(calib), 1.0 / (calib.sigma0_sq * calib.kappa)
         thetas, steps = camera_parameters(self.keys, self.ds.cameras, self.Ks) if camera else ([], [])
-        terms = []
+        lins = []
         for o, w, W in zip(self.observations, weights, self.terms(values)[1]):
             lin = scene_linearisation(o, w * scale, values, self.keys, self.Ks, noise, W)
+            lins.append(lin if thetas else None)
             if lin is None:
-                terms.append(None)
                 continue
             k, _, _, J, e = lin
             idx = np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])
             AtA = J.T @ J
             H[np.ix_(idx, idx)] += AtA
             factors.append((k, idx, AtA, -(J.T @ e), float(e @ e)))
-            terms.append(pair_sensitivity(lin, values, self.keys, self.Ks, noise, thetas, steps) if thetas else None)
-        self.camera_terms = terms if camera else None
+        if camera:
+            self._camera_lins = (lins, values, noise, thetas, steps)
         return H, offsets, factors
+
+    def camera_terms(self):
+        """The last linear system's camera-model terms per pair (camera_model.pair_sensitivity of its
+        Jacobians), or None where it kept none (``camera=False``, or reprojection factors)."""
+        if self._camera_lins is None:
+            return None
+        lins, values, noise, thetas, steps = self._camera_lins
+        return [None if lin is None else pair_sensitivity(lin, values, self.keys, self.Ks, noise, thetas, steps)
+                for lin in lins]
 
     def gauss_newton(self, values, history, weights, calib, camera=True):
         """One Gauss-Newton step from the warm start, on one linearisation that also serves the
@@ -725,6 +736,6 @@ class _Context:
             sol.diagnostics += covariance_diagnostics(c, sol.ee_T_cam[c], sol.covariance[c])
         # the intrinsics' own share where dataset.yaml states their sigma (solver/camera_model.py), as solve
         add_camera_model(sol, self.ds, [w * sol.scene_weight_scale for w in self.weights], self.Ks, self.noise(calib),
-                         at=self.linearised_at, system=system, terms=self.camera_terms)
+                         at=self.linearised_at, system=system, terms=self.camera_terms())
         return sol
 
