@@ -120,9 +120,13 @@ def session_dataset(dataset_dir, name_bad_rows: bool = False) -> Dataset:
             ds = load_dataset(tmp)
         text = (root / poses).read_text(encoding="utf-8-sig") if (root / poses).is_file() else ""
         rows = read_pose_rows(root / poses, ds.robot_unit, text)
-        for i, (_, T, why) in enumerate(rows):  # (a last row without its line end may be being written)
-            if T is None and name_bad_rows and not (i == len(rows) - 1 and open_tail(text)):
-                log.warning("%s; that frame is left out", why)
+        for i, (_, T, why) in enumerate(rows):
+            if T is None and name_bad_rows:
+                if i == len(rows) - 1 and open_tail(text):  # it may be being written
+                    log.warning("%s (the file's last line, without its line end: a replay leaves that frame out, "
+                                "--watch reads it once whole)", why)
+                else:
+                    log.warning("%s; that frame is left out", why)
         good = {f: gtsam.Pose3(T) for f, T, _ in rows if T is not None}
         return dataclasses.replace(ds, root=root, base_T_ee=good)
     finally:
