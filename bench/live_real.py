@@ -229,39 +229,17 @@ def oracle_order(ref, base_T_ee: dict, progress=True) -> tuple[list, list]:
     full result, in :func:`near_score`. Until the first subset that determines the hand-eye, the
     frame whose flange rotation differs most from those used (as the guided replay starts). Only
     frames the full result used are ordered (the others, e.g. left out as not co-visible, follow)."""
-    from tqdm import tqdm
-
-    from calib3r_graph.io.predictions import split_view_id
-
-    model = LinearModel(ref)
-    solved = {split_view_id(v)[1] for v in ref.base_T_cam}
-    frames = [f for f in base_T_ee if f in solved]
-    order, scores = [frames[0]], [float("inf")]
-    cur = model.state(set(order))
-    rest = frames[1:]
-    bar = tqdm(total=len(rest), desc="oracle", disable=not progress, leave=False)
-    while rest:
-        tries = {g: near_score(model.error(set(order) | {g}, model.state(set(order) | {g}, cur, g))) for g in rest}
-        best = min(rest, key=lambda g: tries[g])
-        if not np.isfinite(tries[best]):
-            R = [base_T_ee[f].rotation() for f in order]
-            best = max(rest, key=lambda g: min(np.linalg.norm(gtsam.Rot3.Logmap(r.between(base_T_ee[g].rotation())))
-                                               for r in R))
-        order.append(best)
-        scores.append(tries[best])
-        cur = model.state(set(order), cur, best)
-        rest.remove(best)
-        bar.update()
-    bar.close()
-    return order + [f for f in base_T_ee if f not in solved], scores
+    return _greedy(ref, base_T_ee, lambda model, order, S, state: near_score(model.error(S, state)), "oracle",
+                   progress)
 
 
 def sigma_score(ref, base_T_ee: dict, frames: list, covs) -> float:
     """The guide's own criterion (solver/plan.py's ``objective``, the scale's term left out) with the
     subset's true information: the root sum of squares of sigma / (3 mm, 0.2 deg) over the six ee axes,
-    summed over the cameras, the sigma being the subset's noise-model covariance (:meth:`LinearModel.covariance`) plus the full
-    result's systematic part scaled by the squared systematic-error gain of the subset's motion
-    against the full one's (plan.score_candidates' first pass)."""
+    summed over the cameras, the sigma being the subset's noise-model covariance
+    (:meth:`LinearModel.covariance`) plus the full result's systematic part scaled by the squared
+    systematic-error gain of the subset's motion against the full one's (plan.score_candidates' first
+    pass)."""
     from calib3r_graph.solver.plan import objective
     from calib3r_graph.solver.uncertainty import systematic_error_gain
 
@@ -276,12 +254,21 @@ def sigma_score(ref, base_T_ee: dict, frames: list, covs) -> float:
     return objective(total, ref.ee_T_cam, {c: 0.0 for c in total}, 1.0, NEAR_MM, NEAR_DEG)
 
 
-def sigma_oracle_order(ref, base_T_ee: dict, progress=True) -> list:
+def sigma_oracle_order(ref, base_T_ee: dict, progress=True) -> tuple[list, list]:
     """Greedy on the guide's criterion with what the guide can only predict known: at each step the unused
     frame whose addition gives the smallest :func:`sigma_score` on the full result's linearised graph
     (:class:`LinearModel`: the frame's true factors to the frames used). It does not know the full
     result, so unlike :func:`oracle_order` it cannot pick frames whose errors happen to cancel: it is
     what a guide that predicted every match exactly would do. The start as :func:`oracle_order`'s."""
+    return _greedy(ref, base_T_ee, lambda model, order, S, state: sigma_score(ref, base_T_ee, order,
+                                                                              model.covariance(S, state)),
+                   "sigma oracle", progress)
+
+
+def _greedy(ref, base_T_ee: dict, score, desc: str, progress: bool) -> tuple[list, list]:
+    """(order, [score after each frame]): at each step the unused frame with the lowest
+    ``score(model, order with it, its set, the model's state of that set)``; where none is finite,
+    the frame whose flange rotation differs most from those used."""
     from tqdm import tqdm
 
     from calib3r_graph.io.predictions import split_view_id
@@ -289,26 +276,27 @@ def sigma_oracle_order(ref, base_T_ee: dict, progress=True) -> list:
     model = LinearModel(ref)
     solved = {split_view_id(v)[1] for v in ref.base_T_cam}
     frames = [f for f in base_T_ee if f in solved]
-    order = [frames[0]]
+    order, scores = [frames[0]], [float("inf")]
     cur = model.state(set(order))
     rest = frames[1:]
-    bar = tqdm(total=len(rest), desc="sigma oracle", disable=not progress, leave=False)
+    bar = tqdm(total=len(rest), desc=desc, disable=not progress, leave=False)
     while rest:
         tries = {}
         for g in rest:
             S = set(order) | {g}
-            tries[g] = sigma_score(ref, base_T_ee, order + [g], model.covariance(S, model.state(S, cur, g)))
+            tries[g] = score(model, order + [g], S, model.state(S, cur, g))
         best = min(rest, key=lambda g: tries[g])
         if not np.isfinite(tries[best]):
             R = [base_T_ee[f].rotation() for f in order]
             best = max(rest, key=lambda g: min(np.linalg.norm(gtsam.Rot3.Logmap(r.between(base_T_ee[g].rotation())))
                                                for r in R))
         order.append(best)
+        scores.append(tries[best])
         cur = model.state(set(order), cur, best)
         rest.remove(best)
         bar.update()
     bar.close()
-    return order + [f for f in base_T_ee if f not in solved]
+    return order + [f for f in base_T_ee if f not in solved], scores
 
 
 def linear_scores(ref, order: list) -> list:
@@ -462,7 +450,7 @@ def main():
             print(f"  oracle order ({time.perf_counter() - t:.0f} s): {' '.join(fixed['oracle'])}", flush=True)
         if "sigma_oracle" in wanted:
             t = time.perf_counter()
-            fixed["sigma_oracle"] = sigma_oracle_order(ref, base_T_ee, progress=False)
+            fixed["sigma_oracle"], _ = sigma_oracle_order(ref, base_T_ee, progress=False)
             print(f"  sigma oracle order ({time.perf_counter() - t:.0f} s): {' '.join(fixed['sigma_oracle'])}",
                   flush=True)
         if args.order_file:
