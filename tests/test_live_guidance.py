@@ -154,3 +154,17 @@ def test_candidate_views_are_limited_to_the_viewpoint_change_the_pairs_span(simu
     assert unlimited[2] is not None and unlimited[3] >= plan.MIN_VISIBLE, unlimited[3]
     limited = candidate(C)
     assert limited[2] is None and len(limited[0]) == 1, (limit, turn)  # the robot factor alone
+
+
+def test_distinct_points_are_numpys_unique_rows_and_counts():
+    """plan.distinct_points (a lexsort of the columns, for speed) gives np.unique(axis=0)'s rows and
+    counts: a view's points repeat once per pair that matched the same keypoint."""
+    from calib3r_graph.solver.plan import distinct_points
+
+    rng = np.random.default_rng(3)
+    P = rng.normal(size=(2000, 3))
+    P = np.r_[P, P[rng.integers(0, 2000, 1500)], P[:10] * [1, 1, -1]]  # repeats, and rows that differ in z only
+    U, n = distinct_points({"v": rng.permutation(P), "empty": np.zeros((0, 3))})["v"]
+    U_ref, n_ref = np.unique(P, axis=0, return_counts=True)
+    assert np.array_equal(U, U_ref) and np.array_equal(n, n_ref) and n.sum() == len(P) and n.max() >= 2
+    assert len(distinct_points({"empty": np.zeros((0, 3))})["empty"][0]) == 0

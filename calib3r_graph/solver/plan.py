@@ -68,8 +68,14 @@ def distinct_points(points: dict) -> dict:
     visible count is the sum of the counts of the distinct points seen."""
     out = {}
     for v, P in points.items():
-        U, n = np.unique(P, axis=0, return_counts=True) if len(P) else (P, np.zeros(0, int))
-        out[v] = (U, n)
+        if not len(P):
+            out[v] = (P, np.zeros(0, int))
+            continue
+        # np.unique(P, axis=0) sorts rows as structured records: half of a guidance pass on rwhe_kuka_1
+        # (0.15 of 0.29 CPU s at 20 frames); a lexsort of the columns finds the same rows and counts
+        Ps = P[np.lexsort(P.T[::-1])]
+        first = np.r_[True, np.any(Ps[1:] != Ps[:-1], axis=1)]
+        out[v] = (Ps[first], np.diff(np.r_[np.flatnonzero(first), len(Ps)]))
     return out
 
 
