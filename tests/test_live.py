@@ -201,9 +201,10 @@ def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_
 
 @pytest.mark.parametrize("kind", ["robot_poses.csv", "one pose file"])
 def test_watch_waits_for_the_line_end_of_a_last_pose_row(tmp_path, kind):
-    """A capture script's row caught mid-write can cut a number and still parse (x = 0.1 of 0.1234): a
-    last line without its line end is read only once the file has not changed over two polls, so a
-    row completed in between is read whole; one left so is read as it stands, a poll later."""
+    """A capture script's row caught mid-write can cut its last number and still parse (an angle of
+    -178.5 cut to -17): a last line without its line end is read only once the file has not changed
+    over two polls, so a row completed in between is read whole; one left so is read as it stands, a
+    poll later."""
     import os
 
     from calib3r_graph.live.poses import PoseFiles, RobotPosesCsv
