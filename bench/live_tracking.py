@@ -63,7 +63,8 @@ def track(ds_dir, pname, cache, order, seed: int, every: int, full=None, batch_f
         sol = update(base_T_ee, preds)
         row = {"frames": len(base_T_ee), "cpu_s": time.process_time() - c0}
         if len(base_T_ee) % every == 0:
-            ref = solve(dataclasses.replace(engine.ds, base_T_ee=dict(base_T_ee)), preds, engine.opt)
+            sub = dataclasses.replace(engine.ds, base_T_ee=dict(base_T_ee))
+            ref = solve(sub, preds, engine.opt)
             c = sorted(ref.ee_T_cam)[0]
             z = ee_z(sol.ee_T_cam[c], ref.ee_T_cam[c], ref.covariance[c])
             t, r = pose_error(sol.ee_T_cam[c], ref.ee_T_cam[c])
@@ -75,7 +76,6 @@ def track(ds_dir, pname, cache, order, seed: int, every: int, full=None, batch_f
             if full is not None and batch_frontend and pname is None:
                 from calib3r_graph.frontends.pairwise import pairwise_predictions
 
-                sub = dataclasses.replace(engine.ds, base_T_ee=dict(base_T_ee))
                 bp = pairwise_predictions(sub, None, cache_dir=cache, progress=False)
                 bs = solve(sub, bp, engine.opt)
                 t, r = pose_error(bs.ee_T_cam[c], full.ee_T_cam[c])

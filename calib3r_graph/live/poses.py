@@ -37,24 +37,15 @@ class RobotPosesCsv:
         self._tail = {}  # the file -> (size, mtime) when its last line was last seen without a line end
 
     def poll(self) -> list:
-        text, stat = _read(self.path)
-        if text is None:
-            return []
-        rows = read_pose_rows(self.path, self.unit, text)
-        if rows and open_tail(text) and not _settled(self._tail, self.path, stat):
-            rows = rows[:-1]
-        return rows
+        text = settled_text(self.path, self._tail)
+        return [] if text is None else read_pose_rows(self.path, self.unit, text)
 
 
-def read_pose_rows(path: Path, unit: str, text: str | None = None) -> list:
-    """[(frame, base_T_ee 4x4 or None, reason)] of every row of a robot_poses.csv being written: a row
-    that does not parse (NaN, not unit, too few columns) is named with its reason instead of failing
-    the whole file, as ``read_robot_poses`` would (each row goes through it alone). ``text``: the
-    file's text as already read."""
-    if text is None:
-        if not path.is_file():
-            return []
-        text = path.read_text(encoding="utf-8-sig")
+def read_pose_rows(path: Path, unit: str, text: str) -> list:
+    """[(frame, base_T_ee 4x4 or None, reason)] of every row of ``text``, a robot_poses.csv being
+    written at ``path``: a row that does not parse (NaN, not unit, too few columns) is named with its
+    reason instead of failing the whole file, as ``read_robot_poses`` would (each row goes through it
+    alone)."""
     lines = text.splitlines()
     out = []
     for i, line in enumerate(lines[1:], start=2):
@@ -72,13 +63,23 @@ def read_pose_rows(path: Path, unit: str, text: str | None = None) -> list:
     return out
 
 
-def _read(p: Path) -> tuple:
+def read_text(p: Path) -> tuple:
     """(the file's text, its (size, mtime) when read), or (None, None) where it is not there."""
     try:
         st = p.stat()
         return p.read_text(encoding="utf-8-sig"), (st.st_size, st.st_mtime_ns)
     except (OSError, UnicodeDecodeError):
         return None, None
+
+
+def settled_text(p: Path, seen: dict) -> str | None:
+    """The file's text (None where it is not there), without a last line that has no line end yet
+    unless the file has not changed since the last call for it (``seen``: each file's (size, mtime)
+    then): a line caught mid-write is read once whole or once the file has settled."""
+    text, stat = read_text(p)
+    if text is not None and open_tail(text) and not _settled(seen, p, stat):
+        text = "".join(text.splitlines(keepends=True)[:-1])
+    return text
 
 
 def open_tail(text: str) -> bool:
@@ -156,11 +157,9 @@ class PoseFiles:
                 return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
             except InputError as e:
                 return [] if not self._settled(p) else [(str(p), None, f"{e.path}: {e.what}")]
-        text, stat = _read(p)
+        text = settled_text(p, self._tail)
         if text is None:
             return []
-        if open_tail(text) and not _settled(self._tail, p, stat):
-            text = "\n".join(text.splitlines()[:-1]) + "\n"
         with tempfile.TemporaryDirectory() as tmp:
             copy = Path(tmp) / p.name  # the text as read now, so the whole read and the lines agree
             copy.write_text(text)

@@ -31,7 +31,7 @@ from calib3r_graph.io.dataset import Dataset, load_dataset, pose_to_row
 from calib3r_graph.io.output import atomic_write_json, atomic_write_text
 from calib3r_graph.io.results import calibration_json, covariance_in_ee_frame, sigma_ee_frame, uncertainty_report
 from calib3r_graph.live.engine import Engine
-from calib3r_graph.live.poses import open_tail, read_pose_rows
+from calib3r_graph.live.poses import open_tail, read_pose_rows, read_text
 from calib3r_graph.solver.solve import SolveOptions
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,7 @@ def session_dataset(dataset_dir, name_bad_rows: bool = False) -> Dataset:
             shutil.copy(meta_path, Path(tmp) / "dataset.yaml")
             (Path(tmp) / poses).write_text("frame,x,y,z,qx,qy,qz,qw\nplaceholder,0,0,0,0,0,0,1\n")
             ds = load_dataset(tmp)
-        text = (root / poses).read_text(encoding="utf-8-sig") if (root / poses).is_file() else ""
+        text = read_text(root / poses)[0] or ""
         rows = read_pose_rows(root / poses, ds.robot_unit, text)
         for i, (_, T, why) in enumerate(rows):
             if T is None and name_bad_rows:
