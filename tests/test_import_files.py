@@ -16,7 +16,7 @@ from calib3r_graph.errors import InputError
 from calib3r_graph.io import boards
 from calib3r_graph.io.dataset import load_dataset, load_ground_truth, pose_from_dict
 from calib3r_graph.io.intrinsics_files import read_intrinsics
-from calib3r_graph.io.pose_files import parse_format, read_poses
+from calib3r_graph.io.pose_files import column_names, parse_format, read_poses, to_matrix, to_numbers
 from tests.test_boards import look_at, render_view
 
 K = np.array([[600.0, 0, 322.0], [0, 600.0, 238.0], [0, 0, 1]])
@@ -85,6 +85,30 @@ def test_pose_formats_read_back_exactly(tmp_path, fmt):
     assert sorted(r.number for r in recs) == [3, 4, 5, 6, 7]
     for r in recs:
         np.testing.assert_allclose(r.matrix, poses[r.number - 3], atol=1e-12)
+
+
+@pytest.mark.parametrize("fmt", FORMATS + ["xyz-euler:zyz:deg", "xyz-euler:fixed-xzx:rad"])
+def test_a_pose_written_in_a_format_reads_back_to_the_same_matrix(fmt):
+    """to_numbers (what live writes into next_poses.csv for a user's own pose format) is to_matrix's
+    inverse: random poses, both matrix layouts, and the Euler angles' gimbal lock (middle angle at its
+    limit, where the first and third angles turn about one axis)."""
+    f = parse_format(fmt)
+    poses = random_poses(20, seed=1)
+    if f.euler:
+        seq, deg = f.euler
+        limit = (90.0, -90.0) if len(set(seq.lower())) == 3 else (0.0, 180.0)
+        for i, b in enumerate(limit):
+            poses[i][:3, :3] = Rotation.from_euler(seq, [25.0, b, -40.0], degrees=True).as_matrix()
+    for layout in ("row-major", "column-major"):
+        assert len(column_names(f, layout)) == f.count
+        for M in poses:
+            v = to_numbers(M, f, layout)
+            assert v.shape == (f.count,)
+            np.testing.assert_allclose(to_matrix(v, f, "p", layout), M, atol=1e-12)
+    if fmt.startswith("xyz-quat"):  # one sign of q and -q
+        assert all(to_numbers(M, f)[6 if fmt.endswith("xyzw") else 3] >= 0 for M in poses)
+    assert column_names(parse_format("xyz-euler:zyx:deg")) == ["x", "y", "z", "a", "b", "c"]
+    assert column_names(parse_format("matrix"), "column-major")[:5] == ["m00", "m10", "m20", "m30", "m01"]
 
 
 def test_euler_conventions_and_visp_yaml(tmp_path):

@@ -199,6 +199,44 @@ def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_
     assert steps == list(range(1, len(steps) + 1))
 
 
+def test_watch_proposes_the_next_poses_in_the_users_pose_format(simulated, tmp_path, capsys):
+    """--watch --poses in a KUKA's format (x y z in mm, A B C in degrees, ee_T_base here): next_poses.csv
+    and the printed proposals are in that format, unit and direction, and read back with the same
+    reader they are the 4x4 base_T_ee of live.jsonl, so a user can hand them to the robot as they are."""
+    import shutil
+
+    from calib3r_graph.io.pose_files import parse_format, to_numbers
+    from calib3r_graph.live.poses import PoseFiles
+
+    root = tmp_path / "ds"
+    shutil.copytree(simulated(**SIM), root)
+    ds = load_dataset(root)
+    fmt = parse_format("xyz-euler:zyx:deg")
+    rows = []
+    for f in ds.frames:  # as the controller writes them: the inverse pose, mm and degrees
+        M = ds.base_T_ee[f].inverse().matrix()
+        M[:3, 3] *= 1e3
+        rows.append(f"{int(f)} " + " ".join(f"{v:.12g}" for v in to_numbers(M, fmt)))
+    (root / "kuka.txt").write_text("\n".join(rows) + "\n")
+    (root / "robot_poses.csv").unlink()
+    out = tmp_path / "live"
+    assert main(["-q", "live", str(root), "--watch", "--poses", str(root / "kuka.txt"), "--pose-format",
+                 "xyz-euler:zyx:deg", "--unit", "mm", "--direction", "ee_T_base", "--out", str(out), "--next", "3",
+                 "--poll-s", "0.01", "--idle-s", "0.2", "--target-mm", "0.001"]) == 0
+    last = json.loads((out / "live.jsonl").read_text().splitlines()[-1])
+    assert last["frames"] == ds.frames and len(last["next_poses"]) == 3
+    csv = (out / "next_poses.csv").read_text().splitlines()
+    assert csv[0] == "frame,x,y,z,a,b,c" and [r.split(",")[0] for r in csv[1:]] == ["next01", "next02", "next03"]
+    (tmp_path / "next.txt").write_text("".join(" ".join(r.split(",")[1:]) + "\n" for r in csv[1:]))
+    back = PoseFiles(str(tmp_path / "next.txt"), "xyz-euler:zyx:deg", unit="mm", direction="ee_T_base").poll()
+    for (_, T, why), want in zip(back, last["next_poses"]):
+        assert why is None
+        np.testing.assert_allclose(T[:3, 3], np.asarray(want)[:3, 3], atol=1e-8)  # m
+        np.testing.assert_allclose(T[:3, :3], np.asarray(want)[:3, :3], atol=1e-8)
+    printed = capsys.readouterr().out
+    assert "xyz-euler:zyx:deg, mm, ee_T_base" in printed and csv[1].split(",")[4] in printed
+
+
 @pytest.mark.parametrize("kind", ["robot_poses.csv", "one pose file"])
 def test_watch_waits_for_the_line_end_of_a_last_pose_row(tmp_path, kind):
     """A capture script's row caught mid-write can cut its last number and still parse (an angle of

@@ -124,6 +124,40 @@ def to_matrix(values, fmt: PoseFormat, where: str, layout: str = "row-major") ->
     return M
 
 
+def to_numbers(M, fmt: PoseFormat, layout: str = "row-major") -> np.ndarray:
+    """:func:`to_matrix`'s inverse: a 4x4 (translation in the file's unit) as the format's numbers, so
+    that a pose the tool proposes can be given to the robot as its own file writes poses. A
+    quaternion has w >= 0; Euler angles are scipy's (the middle angle in [-90, 90] deg for an order
+    of three different axes, in [0, 180] for one that repeats the first; at that angle's limit, where
+    the first and third turn about one axis, the third is 0)."""
+    import warnings
+
+    M = np.asarray(M, dtype=float)
+    if fmt.name == "matrix":
+        return (M if layout == "row-major" else M.T).ravel().copy()
+    R = Rotation.from_matrix(M[:3, :3])
+    if fmt.name.startswith("xyz-quat"):
+        q = R.as_quat(canonical=True)  # x y z w
+        rot = q if fmt.name == "xyz-quat-xyzw" else np.r_[q[3], q[:3]]
+    elif fmt.euler:
+        with warnings.catch_warnings():  # gimbal lock: one of many decompositions, the same matrix
+            warnings.simplefilter("ignore", UserWarning)
+            rot = R.as_euler(fmt.euler[0], degrees=fmt.euler[1])
+    else:
+        rot = R.as_rotvec()
+    return np.r_[M[:3, 3], rot]
+
+
+def column_names(fmt: PoseFormat, layout: str = "row-major") -> list:
+    """Names for :func:`to_numbers`' columns (a CSV header): ``x y z`` first, then the rotation's."""
+    if fmt.name == "matrix":
+        idx = [(i, j) for i in range(4) for j in range(4)]
+        return [f"m{i}{j}" for i, j in (idx if layout == "row-major" else [(j, i) for i, j in idx])]
+    rot = {"xyz-quat-xyzw": ["qx", "qy", "qz", "qw"], "xyz-quat-wxyz": ["qw", "qx", "qy", "qz"],
+           "xyz-rotvec": ["rx", "ry", "rz"], "visp": ["tux", "tuy", "tuz"]}.get(fmt.name, ["a", "b", "c"])
+    return ["x", "y", "z", *rot]
+
+
 def _last_number(name: str) -> int | None:
     found = re.findall(r"\d+", name)
     return int(found[-1]) if found else None

@@ -18,6 +18,13 @@ def _box(text):
     return v[:3], v[3:]
 
 
+def _columns(rows) -> str:
+    """Rows of strings as aligned columns, one line each (numbers right-aligned)."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n  ".join(" ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))
+                        for r in rows)
+
+
 def run_live(args, noise_from_args):
     from calib3r_graph.io.predictions import available_predictions
     from calib3r_graph.live.run import replay, watch
@@ -50,7 +57,7 @@ def run_live(args, noise_from_args):
     opt = SolveOptions(noise=noise_from_args(args, info), progress=False)
     session = LiveSession(args.dataset, args.target_mm, args.target_deg, out=out, predictions=name, opt=opt,
                           k_next=args.next, margin_m=args.margin_m, box=_box(args.box),
-                          pixel_from_predictions=args.pixel_sigma_px is None)
+                          pixel_from_predictions=args.pixel_sigma_px is None, next_pose_format=poses)
     source = f"predictions/{name}" if name else "the pairwise frontend on each new image"
     print(f"live: {ds.root} ({source}); target {args.target_mm} mm / {args.target_deg} deg; writing {out}",
           file=sys.stderr)
@@ -70,7 +77,7 @@ def run_live(args, noise_from_args):
                   file=sys.stderr)
             return
     if last is not None and last.next_poses:
-        print("next poses (base_T_ee, best first; also in next_poses.csv):")
-        for kind, T in zip(last.next_kinds, last.next_poses):
-            print(f"  {kind:8s} " + " ".join(f"{x:.4f}" for row in T[:3] for x in row))
+        print(f"next poses (base_T_ee, best first, {session.next_pose_format.describe()}; also in next_poses.csv):")
+        rows = session.next_pose_rows(last)
+        print("  " + _columns([["kind"] + rows[0]] + [[k] + r for k, r in zip(last.next_kinds, rows[1:])]))
     print(f"wrote {out}/calibration.json, next_poses.csv, live.jsonl")

@@ -12,6 +12,10 @@
 now; a pose that cannot be used (NaN, not a rotation, wrong count of numbers) has None and the
 reason naming its file and line. A per-frame file that does not parse yet may be half written: it is
 named and skipped only once it stops changing (same size and time over two polls).
+
+Both also write the poses the guidance proposes as the poses came (``next_poses.csv``): ``header()``
+and ``row(name, base_T_ee)``, so that a user can hand them to the robot in its own format, unit and
+direction (a KUKA's ``x y z a b c`` in mm and degrees, say), and ``describe()`` says which.
 """
 
 import csv
@@ -22,7 +26,8 @@ import numpy as np
 
 from calib3r_graph.errors import InputError
 from calib3r_graph.io.dataset import read_robot_poses
-from calib3r_graph.io.pose_files import PER_FRAME_SUFFIXES, expand, frame_numbers, parse_format, read_poses
+from calib3r_graph.io.pose_files import (PER_FRAME_SUFFIXES, column_names, expand, frame_numbers, layout_of,
+                                         parse_format, read_poses, to_numbers)
 
 STRUCTURED = (".npy", ".json", ".yaml", ".yml")
 
@@ -39,6 +44,31 @@ class RobotPosesCsv:
     def poll(self) -> list:
         text = settled_text(self.path, self._tail)
         return [] if text is None else read_pose_rows(self.path, self.unit, text)
+
+    def header(self) -> list:
+        return dataset_pose_header()
+
+    def row(self, name: str, base_T_ee) -> list:
+        return dataset_pose_row(name, base_T_ee, self.unit)
+
+    def describe(self) -> str:
+        return f"as {self.path.name}: x y z qx qy qz qw, {self.unit}"
+
+
+def dataset_pose_header() -> list:
+    """robot_poses.csv's columns (the dataset format's)."""
+    from calib3r_graph.io.dataset import ROBOT_COLUMNS
+
+    return list(ROBOT_COLUMNS)
+
+
+def dataset_pose_row(name: str, base_T_ee, unit: str) -> list:
+    """A base_T_ee (4x4, metres) as a robot_poses.csv row in ``unit``."""
+    import gtsam
+
+    from calib3r_graph.io.dataset import UNIT_TO_METRES, pose_to_row
+
+    return pose_to_row(name, gtsam.Pose3(np.asarray(base_T_ee, dtype=float)), 1.0 / UNIT_TO_METRES[unit])
 
 
 def read_pose_rows(path: Path, unit: str, text: str) -> list:
@@ -112,6 +142,28 @@ class PoseFiles:
         self.unit, self.direction = unit, direction
         self._failed = {}  # file -> (size, mtime) when it last failed to parse
         self._tail = {}  # file -> (size, mtime) when its last line was last seen without a line end
+        self.layout = "row-major"  # a 4x4's numbers as the files read so far hold them
+
+    def header(self) -> list:
+        return ["frame", *column_names(self.fmt, self.layout)]
+
+    def row(self, name: str, base_T_ee) -> list:
+        """A base_T_ee (4x4, metres) as this file's numbers: its format (a 4x4 in its layout), unit and
+        direction; :meth:`poll` reads such numbers back to the same pose."""
+        M = np.array(base_T_ee, dtype=float)
+        if self.direction == "ee_T_base":
+            M = np.linalg.inv(M)
+        M[:3, 3] /= 1e-3 if self.unit == "mm" else 1.0
+        return [name, *(f"{v:.10g}" for v in to_numbers(M, self.fmt, self.layout))]
+
+    def describe(self) -> str:
+        layout = f", {self.layout}" if self.fmt.name == "matrix" else ""
+        return f"as {Path(self.spec).name}: {self.fmt.name}{layout}, {self.unit}, {self.direction}"
+
+    def _read(self, spec) -> list:
+        recs = read_poses(str(spec), self.fmt, self.key)
+        self.layout = layout_of([r for r in recs if len(r.layouts) == 1]) or self.layout  # (not one that fits both)
+        return recs
 
     def _base_T_ee(self, M) -> np.ndarray:
         from calib3r_graph.importers import DIRECTIONS, apply_convention
@@ -133,7 +185,7 @@ class PoseFiles:
         for i, (f, n) in enumerate(zip(files, numbers)):
             frame = self._frame(n, i)
             try:
-                recs = read_poses(str(f), self.fmt, self.key)
+                recs = self._read(f)
                 if len(recs) != 1:
                     raise InputError(f, f"one file per frame should hold one pose, this one holds {len(recs)}")
                 out.append((frame, self._base_T_ee(recs[0].matrix), None))
@@ -153,7 +205,7 @@ class PoseFiles:
         A text file's last line without its line end waits as :class:`RobotPosesCsv`'s does."""
         if p.suffix.lower() in STRUCTURED:
             try:
-                recs = read_poses(str(p), self.fmt, self.key)
+                recs = self._read(p)
                 return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
             except InputError as e:
                 return [] if not self._settled(p) else [(str(p), None, f"{e.path}: {e.what}")]
@@ -164,7 +216,7 @@ class PoseFiles:
             copy = Path(tmp) / p.name  # the text as read now, so the whole read and the lines agree
             copy.write_text(text)
             try:
-                recs = read_poses(str(copy), self.fmt, self.key)
+                recs = self._read(copy)
                 return [(self._frame(r.number, i), self._base_T_ee(r.matrix), None) for i, r in enumerate(recs)]
             except InputError:
                 pass
@@ -179,7 +231,7 @@ class PoseFiles:
                     continue  # a comment or a header
                 one.write_text(line + "\n")
                 try:
-                    rec = read_poses(str(one), self.fmt, self.key)[0]
+                    rec = self._read(one)[0]
                     out.append((self._frame(rec.number, index), self._base_T_ee(rec.matrix), None))
                 except (InputError, IndexError) as e:
                     first = body.replace(",", " ").split()[0]

@@ -10,7 +10,8 @@
         robot.move_to(up.next_poses[0])                       # 4x4 base_T_ee, the best first
 
 After each update ``out`` holds ``calibration.json`` (the current calibration, as ``solve``
-writes it), ``next_poses.csv`` (in the dataset's robot pose format and unit) and one more line of
+writes it), ``next_poses.csv`` (in the dataset's robot pose format and unit, or with
+``next_pose_format`` in another: the pose file ``--watch --poses`` reads) and one more line of
 ``live.jsonl``, each written atomically. A frame whose image cannot be read, or whose pose is
 missing or not finite, is named in the update (``skipped``) and left out; the session goes on.
 """
@@ -27,7 +28,7 @@ import gtsam
 import numpy as np
 
 from calib3r_graph.errors import Calib3rError, InputError
-from calib3r_graph.io.dataset import Dataset, load_dataset, pose_to_row
+from calib3r_graph.io.dataset import Dataset, load_dataset
 from calib3r_graph.io.output import atomic_write_json, atomic_write_text
 from calib3r_graph.io.results import calibration_json, covariance_in_ee_frame, sigma_ee_frame, uncertainty_report
 from calib3r_graph.live.engine import Engine
@@ -139,12 +140,16 @@ class LiveSession:
     ``predictions``: use the dataset's ``predictions/<name>/`` for the frames (a recording replayed);
     otherwise the pairwise frontend runs on the images as they arrive. ``margin_m`` grows the visited
     region in which poses are proposed, or ``box`` = ((x, y, z), (x, y, z)) bounds it (base frame, m).
+    ``next_pose_format``: how ``next_poses.csv`` writes them (``live/poses.py``: ``header()``,
+    ``row(name, base_T_ee)``, ``describe()``; a ``PoseFiles`` writes them as its files hold poses), by
+    default as the dataset's ``robot_poses.csv``.
     """
 
     def __init__(self, dataset_dir, target_mm: float = 1.0, target_deg: float = 0.1, out=None,
                  predictions: str | None = None, opt: SolveOptions | None = None, k_next: int = K_NEXT,
                  margin_m: float = 0.05, box=None, cache_dir=None, guide: bool = True, seed: int = 0,
-                 pixel_from_predictions: bool | None = None):
+                 pixel_from_predictions: bool | None = None, next_pose_format=None):
+        from calib3r_graph.live.poses import RobotPosesCsv
         from calib3r_graph.live.sources import IncrementalPairwise, RecordedPredictions
 
         self.ds = session_dataset(dataset_dir, name_bad_rows=True)
@@ -152,6 +157,8 @@ class LiveSession:
         self.target = (float(target_mm), float(target_deg))
         self.out = Path(out) if out else None
         self.k_next, self.margin_m, self.box, self.guide, self.seed = k_next, margin_m, box, guide, seed
+        self.next_pose_format = next_pose_format or RobotPosesCsv(
+            Path(self.ds.meta.get("robot", {}).get("poses", "robot_poses.csv")), self.ds.robot_unit)
         if predictions:
             from calib3r_graph.io.predictions import load_predictions
 
@@ -369,6 +376,12 @@ class LiveSession:
         up.latency_s, up.cpu_s = time.perf_counter() - t1, time.process_time() - c1
         return up
 
+    def next_pose_rows(self, up) -> list:
+        """``next_poses.csv``'s rows of an update, header first: its proposed poses as
+        ``next_pose_format`` writes them, named next01, next02, ..."""
+        fmt = self.next_pose_format
+        return [fmt.header()] + [fmt.row(f"next{i + 1:02d}", T) for i, T in enumerate(up.next_poses)]
+
     def _floor(self, sol) -> bool:
         """The systematic part alone exceeds the target even at the best motion: it does not average
         out with more poses, and better rotations only lower its geometric gain (uncertainty.
@@ -395,9 +408,5 @@ class LiveSession:
             atomic_write_text(path, old + json.dumps(up.to_json()) + "\n")
             if up.calibration is not None:
                 atomic_write_json(self.out / "calibration.json", up.calibration)
-            rows = ["frame,x,y,z,qx,qy,qz,qw"]
-            scale = 1000.0 if self.ds.robot_unit == "mm" else 1.0
-            for i, T in enumerate(up.next_poses):
-                rows.append(",".join(str(x) for x in pose_to_row(f"next{i + 1:02d}", gtsam.Pose3(np.array(T)), scale)))
-            atomic_write_text(self.out / "next_poses.csv", "\n".join(rows) + "\n")
+            atomic_write_text(self.out / "next_poses.csv", "\n".join(",".join(r) for r in self.next_pose_rows(up)) + "\n")
         return up
