@@ -168,3 +168,39 @@ def test_distinct_points_are_numpys_unique_rows_and_counts():
     U_ref, n_ref = np.unique(P, axis=0, return_counts=True)
     assert np.array_equal(U, U_ref) and np.array_equal(n, n_ref) and n.sum() == len(P) and n.max() >= 2
     assert len(distinct_points({"empty": np.zeros((0, 3))})["empty"][0]) == 0
+
+
+def test_stacked_visible_counts_are_each_views_own_projection(simulated):
+    """plan.StackedPoints (every view's distinct points in the base frame, one projection per
+    candidate, for speed) counts what each view's own projection counts, and candidate_factors picks
+    the same overlapping view and visible points with it, at the poses the guide proposes."""
+    from calib3r_graph.solver.plan import StackedPoints, candidate_factors, candidate_poses, distinct_points, \
+        scene_points_by_view
+
+    session = LiveSession(simulated(seed=5, frames=8, cameras=1, matches_per_pair=300), predictions="sim",
+                          guide=False)
+    replay(session, "recorded")
+    sol, preds, noise = session.sol, session.preds, session.engine.last_noise
+    points = scene_points_by_view(sol)
+    distinct = distinct_points(points)
+    stacked = StackedPoints.of(sol, preds, distinct)
+    cands = candidate_poses(sol, dict(session.base_T_ee), 0.05, None, np.random.default_rng(0))
+    assert len(cands) >= 10
+    X = sol.ee_T_cam["cam0"]
+    seen_some = 0
+    for _, E in cands:
+        C = E.compose(X)
+        counts = stacked.visible_counts(C)
+        for v, (U, n) in distinct.items():
+            T = C.between(sol.base_T_cam[v])
+            Q = U @ T.rotation().matrix().T + T.translation()
+            K, (h, w) = preds.views[v].K, preds.views[v].depth.shape
+            uv = Q[:, :2] / np.maximum(Q[:, 2:3], 1e-9) @ np.diag([K[0, 0], K[1, 1]]) + K[:2, 2]
+            vis = (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            assert counts[v] == int(n[vis].sum())
+            seen_some += 0 < counts[v] < n.sum()  # partly in view: the image bounds decide
+        a = candidate_factors(sol, preds, noise, E, np.random.default_rng(1), points=points, distinct=distinct)
+        b = candidate_factors(sol, preds, noise, E, np.random.default_rng(1), points=points, distinct=distinct,
+                              stacked=stacked)
+        assert a[2:] == b[2:] and a[2] is not None
+    assert seen_some > 0

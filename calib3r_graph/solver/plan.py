@@ -79,6 +79,48 @@ def distinct_points(points: dict) -> dict:
     return out
 
 
+@dataclass
+class StackedPoints:
+    """:func:`distinct_points` of every view, stacked once per scoring in the base frame, so that a
+    candidate counts what it sees of every view's points in one projection instead of one per view
+    (4094 projections, 0.24 of a 0.68 CPU s scoring of 48 candidates at 30 frames of rwhe_kuka_1)."""
+
+    views: list  # the views, in sol.base_T_cam's order
+    P: np.ndarray  # (M, 3) the points in the base frame
+    count: np.ndarray  # (M,) how often each occurs in its view
+    view: np.ndarray  # (M,) index into ``views``
+    camera: np.ndarray  # (M, 6) fx, fy, cx, cy, width, height of the point's view
+
+    @classmethod
+    def of(cls, sol, preds, distinct: dict) -> "StackedPoints":
+        views = [v for v in sol.base_T_cam if v in distinct]
+        parts, counts, index, cams = [], [], [], []
+        for i, v in enumerate(views):
+            U, n = distinct[v]
+            T = sol.base_T_cam[v]
+            parts.append(U @ T.rotation().matrix().T + T.translation() if len(U) else np.zeros((0, 3)))
+            K, (h, w) = preds.views[v].K, preds.views[v].depth.shape
+            counts.append(n)
+            index.append(np.full(len(U), i))
+            cams.append(np.tile([K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h], (len(U), 1)))
+        cat = lambda x, shape: np.concatenate(x) if x else np.zeros(shape)  # noqa: E731
+        return cls(views, cat(parts, (0, 3)), cat(counts, (0,)).astype(int), cat(index, (0,)).astype(int),
+                   cat(cams, (0, 6)))
+
+    def visible_counts(self, C: gtsam.Pose3) -> dict:
+        """{view: how many of its points (with repeats) a camera at base_T_cam ``C`` would see}: in
+        front of it by 5 cm and inside the view's image, projected with the view's intrinsics (as
+        :func:`candidate_factors`' own test)."""
+        Ci = C.inverse()
+        Q = self.P @ Ci.rotation().matrix().T + Ci.translation()
+        k = self.camera
+        u = Q[:, 0] / np.maximum(Q[:, 2], 1e-9) * k[:, 0] + k[:, 2]
+        v = Q[:, 1] / np.maximum(Q[:, 2], 1e-9) * k[:, 1] + k[:, 3]
+        vis = (Q[:, 2] > 0.05) & (u >= 0) & (u < k[:, 4]) & (v >= 0) & (v < k[:, 5])
+        n = np.bincount(self.view[vis], weights=self.count[vis], minlength=len(self.views))
+        return {view: int(round(c)) for view, c in zip(self.views, n)}
+
+
 def view_axes(sol) -> dict:
     """{view: its optical axis (unit z of ``base_T_cam``) in the base frame}, computed once for many
     candidates (each compares its own axis with every view's)."""
@@ -104,14 +146,15 @@ def matched_view_angle_deg(sol, axes=None) -> float:
 
 
 def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None,
-                      distinct=None, max_angle_deg=None, axes=None):
+                      distinct=None, max_angle_deg=None, axes=None, stacked=None):
     """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
     overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
     with its robot pose factor, and a 3D match factor to the existing view that sees most of the
     same scene (see the module's docstring), among the views whose optical axis is within
     ``max_angle_deg`` of the candidate's (:func:`matched_view_angle_deg` of ``sol`` when None).
     ``points``: :func:`scene_points_by_view` of ``sol``; ``distinct``: :func:`distinct_points` of
-    them (the same choice, counted on fewer points); ``axes``: :func:`view_axes` of ``sol``."""
+    them (the same choice, counted on fewer points); ``stacked``: :class:`StackedPoints` of those (the
+    same counts, in one projection); ``axes``: :func:`view_axes` of ``sol``."""
     from calib3r_graph.solver.observations import PairObservations
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)
@@ -135,10 +178,13 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
         max_angle_deg = matched_view_angle_deg(sol, axes)
     c_axis = C.rotation().matrix()[:, 2]
     best, best_count = None, -1
+    counts = stacked.visible_counts(C) if stacked is not None else None
     for v in sol.base_T_cam:
         if split_view_id(v)[0] != ref_cam or axis_angle_deg(axes[v], c_axis) > max_angle_deg:
             continue
-        if distinct is not None:
+        if counts is not None:
+            count = counts.get(v, 0)
+        elif distinct is not None:
             U, n = distinct[v]
             count = int(n[seen(v, U)[0]].sum()) if len(U) else 0
         else:
@@ -387,13 +433,15 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     points = scene_points_by_view(sol)
     distinct = distinct_points(points)
+    stacked = StackedPoints.of(sol, preds, distinct)
     axes = view_axes(sol)
     max_angle = matched_view_angle_deg(sol, axes)
     proposals, parts = [], []
     loo = _leave_one_out(sol, len(frames))
     for kind, E, frame in candidates:
         fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points,
-                                                  distinct=distinct, max_angle_deg=max_angle, axes=axes)
+                                                  distinct=distinct, max_angle_deg=max_angle, axes=axes,
+                                                  stacked=stacked)
         S_out = S[np.ix_(out_idx, out_idx)]
         D, U = None, None
         if best is not None:
