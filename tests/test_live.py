@@ -187,8 +187,16 @@ def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_
     session = LiveSession(root, predictions="sim", out=out, guide=False)
     seen = []
     watch(session, poll_s=0.01, on_update=seen.append, max_idle_s=0.05)
-    assert [len(u.frames) for u in seen] == [1, 2, 3, 3]
-    assert seen[-1].skipped[0][0] == "9998" and "NaN" in seen[-1].skipped[0][1]
+    assert [len(u.frames) for u in seen] == [1, 2, 3, 3, 3]  # the last: solve on the 3 frames, at the idle end
+    assert seen[-2].skipped[0][0] == "9998" and "NaN" in seen[-2].skipped[0][1]
+    full = load_dataset(simulated(**SIM))
+    ds3 = subset_dataset(full, seen[-1].frames)
+    preds3 = subset_predictions(load_predictions(full.root, "sim", full.cameras, set(full.frames)), seen[-1].frames)
+    ref = solve(ds3, preds3, SolveOptions(noise=NoiseOptions(pixel_sigma_px=preds3.info["match_noise_px"]),
+                                          progress=False))
+    X = gtsam.Pose3(np.array(seen[-1].ee_T_cam["cam0"]))
+    assert np.all(np.abs(_z(X, ref.ee_T_cam["cam0"], ref.covariance["cam0"])) < 1e-6)
+    assert json.loads((out / "calibration.json").read_text())["cameras"]["cam0"]["T_ee_cam"] == seen[-1].ee_T_cam["cam0"]
     (root / "robot_poses.csv").write_text("\n".join(rows) + "\n")  # the rest arrives; a new session resumes
     again = LiveSession(root, predictions="sim", out=out, guide=False)
     more = []

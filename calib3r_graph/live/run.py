@@ -93,12 +93,16 @@ def _most_different(session, used, rest):
 
 
 def watch(session: LiveSession, poll_s: float = 1.0, on_update=None, max_idle_s: float | None = None,
-          resume: bool = False, poses=None) -> Update | None:
+          resume: bool = False, poses=None, finish: bool = True) -> Update | None:
     """Poll the dataset folder for frames: a robot pose and an image per camera. ``poses``: where the
     poses come from (``live/poses.py``: any pose file ``import files`` reads); by default the
     dataset's robot pose file. Each complete frame is added once, in the poses' order; a pose that
     cannot be used is named and skipped. Ends at the target (``done``) or when nothing new came for
-    ``max_idle_s``; Ctrl-C ends it too, with everything written after each update already in place."""
+    ``max_idle_s``; Ctrl-C ends it too, with everything written after each update already in place.
+    At the target or the idle end, with ``finish``, a last update runs ``solve`` on every frame
+    (:meth:`LiveSession.finish`), so that what the session leaves is ``solve``'s result on the frames
+    it recorded, as a replay's is, and not the last incremental update (on rwhe_kuka_1's images that
+    was 0.43 mm / 0.034 deg from it, up to 0.84 of its sigma)."""
     from calib3r_graph.live.poses import RobotPosesCsv
 
     ds = session.ds
@@ -134,9 +138,19 @@ def watch(session: LiveSession, poll_s: float = 1.0, on_update=None, max_idle_s:
             if on_update:
                 on_update(up)
             if up.done:
-                return up
+                return _finish(session, up, on_update) if finish else up
         if got:
             last_new = time.monotonic()
         elif max_idle_s is not None and time.monotonic() - last_new > max_idle_s:
-            return up
+            return _finish(session, up, on_update) if finish else up
         time.sleep(poll_s)
+
+
+def _finish(session: LiveSession, up, on_update):
+    """``solve`` on the session's frames where an update has solved them, else ``up`` as it is."""
+    if session.sol is None:
+        return up
+    up = session.finish()
+    if on_update:
+        on_update(up)
+    return up
