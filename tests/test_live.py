@@ -188,6 +188,7 @@ def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_
     seen = []
     watch(session, poll_s=0.01, on_update=seen.append, max_idle_s=0.05)
     assert [len(u.frames) for u in seen] == [1, 2, 3, 3, 3]  # the last: solve on the 3 frames, at the idle end
+    assert seen[-1].message.startswith("final: solve on all 3 frames") and "final" not in seen[-2].message
     assert seen[-2].skipped[0][0] == "9998" and "NaN" in seen[-2].skipped[0][1]
     full = load_dataset(simulated(**SIM))
     ds3 = subset_dataset(full, seen[-1].frames)

@@ -360,6 +360,8 @@ class LiveSession:
         elif up.floor:
             up.message = ("more poses will not help: the robot's systematic error alone gives more than the target "
                           f"{self.target[0]} mm / {self.target[1]} deg")
+        if final:  # the status line says which result this is
+            up.message = "; ".join(m for m in (f"final: solve on all {len(frames)} frames", up.message) if m)
         tg = time.perf_counter()
         if self.guide and not up.done:
             try:
