@@ -199,8 +199,7 @@ def test_stacked_visible_counts_are_each_views_own_projection(simulated):
             vis = (Q[:, 2] > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
             assert counts[v] == int(n[vis].sum())
             seen_some += 0 < counts[v] < n.sum()  # partly in view: the image bounds decide
-        a = candidate_factors(sol, preds, noise, E, np.random.default_rng(1), points=points, distinct=distinct)
-        b = candidate_factors(sol, preds, noise, E, np.random.default_rng(1), points=points, distinct=distinct,
-                              stacked=stacked)
+        a = candidate_factors(sol, preds, noise, E, np.random.default_rng(1), points=points)  # every point projected
+        b = candidate_factors(sol, preds, noise, E, np.random.default_rng(1), points=points, stacked=stacked)
         assert a[2:] == b[2:] and a[2] is not None
     assert seen_some > 0

@@ -22,10 +22,11 @@ import csv
 import tempfile
 from pathlib import Path
 
+import gtsam
 import numpy as np
 
 from calib3r_graph.errors import InputError
-from calib3r_graph.io.dataset import read_robot_poses
+from calib3r_graph.io.dataset import ROBOT_COLUMNS, UNIT_TO_METRES, pose_to_row, read_robot_poses
 from calib3r_graph.io.pose_files import (PER_FRAME_SUFFIXES, column_names, expand, frame_numbers, layout_of,
                                          parse_format, read_poses, to_numbers)
 
@@ -46,29 +47,14 @@ class RobotPosesCsv:
         return [] if text is None else read_pose_rows(self.path, self.unit, text)
 
     def header(self) -> list:
-        return dataset_pose_header()
+        return list(ROBOT_COLUMNS)
 
     def row(self, name: str, base_T_ee) -> list:
-        return dataset_pose_row(name, base_T_ee, self.unit)
+        """A base_T_ee (4x4, metres) as a robot_poses.csv row in this file's unit."""
+        return pose_to_row(name, gtsam.Pose3(np.asarray(base_T_ee, dtype=float)), 1.0 / UNIT_TO_METRES[self.unit])
 
     def describe(self) -> str:
         return f"as {self.path.name}: x y z qx qy qz qw, {self.unit}"
-
-
-def dataset_pose_header() -> list:
-    """robot_poses.csv's columns (the dataset format's)."""
-    from calib3r_graph.io.dataset import ROBOT_COLUMNS
-
-    return list(ROBOT_COLUMNS)
-
-
-def dataset_pose_row(name: str, base_T_ee, unit: str) -> list:
-    """A base_T_ee (4x4, metres) as a robot_poses.csv row in ``unit``."""
-    import gtsam
-
-    from calib3r_graph.io.dataset import UNIT_TO_METRES, pose_to_row
-
-    return pose_to_row(name, gtsam.Pose3(np.asarray(base_T_ee, dtype=float)), 1.0 / UNIT_TO_METRES[unit])
 
 
 def read_pose_rows(path: Path, unit: str, text: str) -> list:
@@ -153,7 +139,7 @@ class PoseFiles:
         M = np.array(base_T_ee, dtype=float)
         if self.direction == "ee_T_base":
             M = np.linalg.inv(M)
-        M[:3, 3] /= 1e-3 if self.unit == "mm" else 1.0
+        M[:3, 3] /= UNIT_TO_METRES[self.unit]
         return [name, *(f"{v:.10g}" for v in to_numbers(M, self.fmt, self.layout))]
 
     def describe(self) -> str:

@@ -146,15 +146,15 @@ def matched_view_angle_deg(sol, axes=None) -> float:
 
 
 def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, keys_new=None, points=None,
-                      distinct=None, max_angle_deg=None, axes=None, stacked=None):
+                      max_angle_deg=None, axes=None, stacked=None):
     """What recording flange pose ``E`` would add to ``sol``'s graph: ([factors], new Values, the
     overlapping view or None, visible points). The reference camera's view at ``E * ee_T_cam``
     with its robot pose factor, and a 3D match factor to the existing view that sees most of the
     same scene (see the module's docstring), among the views whose optical axis is within
     ``max_angle_deg`` of the candidate's (:func:`matched_view_angle_deg` of ``sol`` when None).
-    ``points``: :func:`scene_points_by_view` of ``sol``; ``distinct``: :func:`distinct_points` of
-    them (the same choice, counted on fewer points); ``stacked``: :class:`StackedPoints` of those (the
-    same counts, in one projection); ``axes``: :func:`view_axes` of ``sol``."""
+    ``points``: :func:`scene_points_by_view` of ``sol``; ``stacked``: :class:`StackedPoints` of their
+    :func:`distinct_points` (the same counts, on fewer points, in one projection); ``axes``:
+    :func:`view_axes` of ``sol``."""
     from calib3r_graph.solver.observations import PairObservations
 
     keys, cameras = sol.keys, list(sol.ee_T_cam)
@@ -184,9 +184,6 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
             continue
         if counts is not None:
             count = counts.get(v, 0)
-        elif distinct is not None:
-            U, n = distinct[v]
-            count = int(n[seen(v, U)[0]].sum()) if len(U) else 0
         else:
             P = points[v] if points is not None else _scene_points(sol, v)
             count = int(seen(v, P)[0].sum()) if len(P) else 0
@@ -432,16 +429,14 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     rng = np.random.default_rng(seed)
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     points = scene_points_by_view(sol)
-    distinct = distinct_points(points)
-    stacked = StackedPoints.of(sol, preds, distinct)
+    stacked = StackedPoints.of(sol, preds, distinct_points(points))
     axes = view_axes(sol)
     max_angle = matched_view_angle_deg(sol, axes)
     proposals, parts = [], []
     loo = _leave_one_out(sol, len(frames))
     for kind, E, frame in candidates:
         fs, vals, best, n_vis = candidate_factors(sol, preds, noise, E, rng, keys_new=k_new, points=points,
-                                                  distinct=distinct, max_angle_deg=max_angle, axes=axes,
-                                                  stacked=stacked)
+                                                  max_angle_deg=max_angle, axes=axes, stacked=stacked)
         S_out = S[np.ix_(out_idx, out_idx)]
         D, U = None, None
         if best is not None:
