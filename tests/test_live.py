@@ -88,7 +88,9 @@ def test_replay_writes_live_jsonl_and_calibration(simulated, tmp_path, capsys):
     assert lines[-1]["frames"] == load_dataset(root).frames
     rows = (out / "next_poses.csv").read_text().splitlines()
     assert rows[0] == "frame,x,y,z,qx,qy,qz,qw" and len(rows) == 1 + len(lines[-1]["next_poses"])
-    assert f"frames {len(lines[-1]['frames']):3d}" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"frames {len(lines[-1]['frames']):3d}" in printed
+    assert f"wrote {out}/calibration.json, next_poses.csv, live.jsonl\n" in printed
     # nothing the user had is overwritten: a second run into the same folder is refused
     assert main(["-q", "live", str(root), "--replay", "recorded", "--out", str(out)]) != 0
 
@@ -244,6 +246,20 @@ def test_watch_proposes_the_next_poses_in_the_users_pose_format(simulated, tmp_p
         np.testing.assert_allclose(T[:3, :3], np.asarray(want)[:3, :3], atol=1e-8)
     printed = capsys.readouterr().out
     assert "xyz-euler:zyx:deg, mm, ee_T_base" in printed and csv[1].split(",")[4] in printed
+
+
+def test_a_watch_that_never_solved_does_not_claim_a_calibration(simulated, tmp_path, capsys):
+    """Two poses cannot be solved: the end of the run names the files it wrote, not calibration.json."""
+    import shutil
+
+    root = tmp_path / "ds"
+    shutil.copytree(simulated(**SIM), root)
+    rows = (root / "robot_poses.csv").read_text().splitlines()
+    (root / "robot_poses.csv").write_text("\n".join(rows[:3]) + "\n")
+    out = tmp_path / "live"
+    assert main(["-q", "live", str(root), "--watch", "--out", str(out), "--poll-s", "0.01", "--idle-s", "0.1"]) == 0
+    assert not (out / "calibration.json").exists() and (out / "live.jsonl").is_file()
+    assert f"wrote {out}/next_poses.csv, live.jsonl (no calibration.json" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("kind", ["robot_poses.csv", "one pose file"])

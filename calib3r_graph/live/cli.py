@@ -80,4 +80,6 @@ def run_live(args, noise_from_args):
         print(f"next poses (base_T_ee, best first, {session.next_pose_format.describe()}; also in next_poses.csv):")
         rows = session.next_pose_rows(last)
         print("  " + _columns([["kind"] + rows[0]] + [[k] + r for k, r in zip(last.next_kinds, rows[1:])]))
-    print(f"wrote {out}/calibration.json, next_poses.csv, live.jsonl")
+    wrote = [f for f in ("calibration.json", "next_poses.csv", "live.jsonl") if (out / f).is_file()]
+    print(f"wrote {out}/{', '.join(wrote)}" + ("" if "calibration.json" in wrote else
+                                               " (no calibration.json: no update could solve these frames)"))
