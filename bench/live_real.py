@@ -24,6 +24,7 @@ The linearised and re-solving jackknives are compared by ``bench/jackknife.py``.
 
     .venv/bin/python bench/live_real.py [--recordings rwhe_kuka_1,rwhe_kuka_2,tabb_ds1,sim] [--seeds 20]
         [--seed-start 0] [--work DIR] [--cache DIR] [--out bench/results]
+    .venv/bin/python bench/live_real.py --merge A/live_real.json B/live_real.json [--out bench/results]
 
 Writes ``OUT/live_real.json``, ``OUT/live_real.md`` and ``OUT/live_real_<recording>.png``.
 """
@@ -429,10 +430,17 @@ def main():
                     help="any of recorded, guided, random, oracle (greedy on the linearised full result), "
                          "sigma_oracle (greedy on the guide's criterion with the true factors)")
     ap.add_argument("--order-file", help="also replay this fixed order: frame ids, whitespace separated")
+    ap.add_argument("--merge", nargs="+", metavar="JSON[:REC,...]",
+                    help="replay nothing: merge these live_real.json files (e.g. one recording's orders run in two "
+                         "processes), each whole or only the recordings named after a colon, into OUT's "
+                         "live_real.{json,md} and plots; a recording in several files gets all their runs, summarised "
+                         "against the batch solve of the first")
     add_work_args(ap, "live_real")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: %(message)s")
     work, cache, out = work_dirs(args)
+    if args.merge:
+        return merge(args.merge, out)
     result = {"command": " ".join(sys.argv), "recordings": {}}
     for name in args.recordings.split(","):
         if name != "sim" and not (SHARED / name).is_dir():
@@ -482,6 +490,34 @@ def main():
         result["recordings"][name] = rec
         plot(name, runs, out / f"live_real_{name}.png")
         (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
+    (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
+    (out / "live_real.md").write_text(table(result))
+    print(table(result))
+
+
+def merge(sources, out: Path):
+    """``--merge``: the recordings of several live_real.json (``path`` or ``path:rec1,rec2``), runs of
+    the same recording pooled (an order's seed once: the first file's run) and summarised again."""
+    files = []
+    for src in sources:
+        path, _, names = src.partition(":")
+        files.append((json.loads(Path(path).read_text()), set(names.split(",")) if names else None))
+    result = {"command": "; ".join(d["command"] for d, _ in files) +
+              f" (merged: bench/live_real.py --merge {' '.join(sources)})", "recordings": {}}
+    for data, only in files:
+        for name, rec in data["recordings"].items():
+            if only is not None and name not in only:
+                continue
+            have = result["recordings"].setdefault(name, {**rec, "runs": []})
+            seen = {(r["order"], r["seed"]) for r in have["runs"]}
+            have["runs"] += [r for r in rec["runs"] if (r["order"], r["seed"]) not in seen]
+            have["fixed_orders"] = {**rec.get("fixed_orders", {}), **have.get("fixed_orders", {})}
+            have["linearised_frames_to_3mm_0.2deg"] = {**rec.get("linearised_frames_to_3mm_0.2deg", {}),
+                                                       **have.get("linearised_frames_to_3mm_0.2deg", {})}
+    for name, rec in result["recordings"].items():
+        rec["summary"] = summarise(rec["runs"], rec["batch_solve_s"], rec.get("batch_solve_cpu_s"),
+                                   rec.get("full_sigma_mm_deg"))
+        plot(name, rec["runs"], out / f"live_real_{name}.png")
     (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "live_real.md").write_text(table(result))
     print(table(result))

@@ -128,3 +128,46 @@ def test_a_view_whose_depths_do_not_change_keeps_its_prediction_object():
     assert [(p.view_a, p.view_b) for p in pairs2] == [(p.view_a, p.view_b) for p in fresh_pairs]
     for p, q in zip(pairs2, fresh_pairs):
         assert _equal((p.uv_a, p.uv_b, p.conf), (q.uv_a, q.uv_b, q.conf))
+
+
+def test_a_view_keeps_its_aggregation_until_its_pairs_regrow():
+    """With ``regrow=2`` (a live session) a view aggregated from two pairs keeps its prediction
+    object when a third arrives: the new pair's matches are exactly its keypoints where that view
+    already had depth. At four pairs it is aggregated again, to what an uncached run gives."""
+    rng = np.random.default_rng(5)
+    cam = opencv_camera("cam0", (200, 150), np.array([[100.0, 0, 100], [0, 100, 75], [0, 0, 1]]), np.zeros(5))
+    ds = SimpleNamespace(cameras={"cam0": cam})
+    gx, gy = np.meshgrid(np.arange(20) * 9.0 + 10.3, np.arange(15) * 9.0 + 8.7)  # 2x2 splats never touch
+    uv = np.c_[gx.ravel(), gy.ravel()]
+    n = len(uv)
+    z = rng.uniform(1.0, 3.0, n)
+    names = [f"cam0/{k}" for k in "abcde"]
+    feats = {v: pw.Features(uv, np.zeros((n, 128), np.float32), np.arange(n)) for v in names}
+
+    def pair(b, lo, hi):
+        idx = np.arange(lo, hi)
+        return ("cam0/a", b), pw.PairGeometry("cam0/a", b, idx, idx, z[idx], z[idx], np.full(len(idx), 0.2),
+                                              np.full(len(idx), 0.5), np.eye(3), np.array([1.0, 0, 0]))
+
+    opt = pw.PairwiseOptions()
+    geoms = dict([pair("cam0/b", 0, 200), pair("cam0/c", 0, 200)])
+    cache = {}
+    views, _, _ = pw.aggregate(ds, feats, geoms, opt, cache=cache, regrow=2.0)
+    third = {**geoms, **dict([pair("cam0/d", 100, 300)])}
+    views3, pairs3, _ = pw.aggregate(ds, feats, third, opt, cache=cache, regrow=2.0)
+    assert views3["cam0/a"] is views["cam0/a"]
+    ad = next(p for p in pairs3 if {p.view_a, p.view_b} == {"cam0/a", "cam0/d"})
+    uv_a = ad.uv_a if ad.view_a == "cam0/a" else ad.uv_b
+    assert len(uv_a) == 100 and np.array_equal(np.sort(uv_a[:, 0] * 1e3 + uv_a[:, 1]),
+                                               np.sort(uv[100:200, 0] * 1e3 + uv[100:200, 1]))
+    fresh3, fresh_pairs3, _ = pw.aggregate(ds, feats, third, opt)  # without the cache: all 200 of the new pair
+    assert sum(len(p.conf) for p in fresh_pairs3 if "cam0/d" in (p.view_a, p.view_b)) == 200
+    fourth = {**third, **dict([pair("cam0/e", 50, 250)])}
+    views4, pairs4, _ = pw.aggregate(ds, feats, fourth, opt, cache=cache, regrow=2.0)
+    fresh4, fresh_pairs4, _ = pw.aggregate(ds, feats, fourth, opt)
+    assert views4["cam0/a"] is not views["cam0/a"]
+    for v in fresh4:
+        assert np.array_equal(views4[v].depth, fresh4[v].depth) and np.array_equal(views4[v].conf, fresh4[v].conf)
+    for p, q in zip(pairs4, fresh_pairs4):
+        assert (p.view_a, p.view_b) == (q.view_a, q.view_b)
+        assert _equal((p.uv_a, p.uv_b, p.conf), (q.uv_a, q.uv_b, q.conf))

@@ -842,6 +842,16 @@ def _unchanged_view(hit, feats: Features, res):
     return view, (view_info if view_info["pairs"] == len(res[3]) else {**view_info, "pairs": len(res[3])})
 
 
+def _still_growing(hit, feats: Features, mine, regrow) -> bool:
+    """Whether a view's last aggregation (``hit``: aggregate's cache entry) stands for its pairs
+    ``mine`` under ``regrow``: the same features, a usable result, each pair it came from still there
+    with the same geometry, and fewer than ``regrow`` times as many pairs now."""
+    if hit is None or hit[0] is not feats or hit[2] is None or hit[3] is None or len(mine) >= regrow * len(hit[1]):
+        return False
+    now = dict(mine)
+    return all(now.get(ab) is g for ab, g in hit[1])
+
+
 def _pair_end(cache, ab, end, g, feats: Features, view):
     """One end of a pair's match check: its matches' pixels, whether the view's depth map has depth
     there (all four neighbours), and the log ratio of that depth to the pair's own. Kept while the
@@ -860,7 +870,7 @@ def _pair_end(cache, ab, end, g, feats: Features, view):
 
 
 def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons: dict | None = None,
-              cache: dict | None = None):
+              cache: dict | None = None, regrow: float | None = None):
     """(views {vid: ViewPrediction}, pairs [PairMatches], info) from verified pair geometries.
     ``info["reasons"]`` says in one line why each of ``info["unusable"]`` is left out;
     ``known_reasons`` are the views already explained (and warned about) by the caller.
@@ -870,7 +880,11 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
     aggregated again, and a pair whose geometry and both views are unchanged keeps its matches;
     the results are the same objects as before, so a caller can tell what changed by identity. A
     view whose pairs changed but whose keypoint depths come out the same keeps its prediction too,
-    and a pair re-samples only the end whose prediction is new."""
+    and a pair re-samples only the end whose prediction is new.
+
+    ``regrow`` (with ``cache``): a view keeps its last aggregation while every pair it was aggregated
+    from is still there, unchanged, and it has fewer than ``regrow`` times as many pairs; a new pair's
+    matches then meet the depth that view had (a live session: ``live/sources.py`` says why)."""
     known_reasons = known_reasons or {}
     cache = {} if cache is None else cache
     views, info = {}, {"views": {}, "unusable": [], "reasons": {}}
@@ -881,6 +895,8 @@ def aggregate(ds, feats: dict, geoms: dict, opt: PairwiseOptions, known_reasons:
         if hit is not None and hit[0] is feats[vid] and len(hit[1]) == len(mine) and all(
                 ab == ab2 and g is g2 for (ab, g), (ab2, g2) in zip(hit[1], mine)):
             res, done = hit[2], hit[3]
+        elif regrow and _still_growing(hit, feats[vid], mine, regrow):
+            res, done = hit[2], hit[3]  # (the cache keeps the pairs it was aggregated from)
         else:  # view_depths reads only the view's own pairs, in geoms' order
             res = view_depths(vid, feats[vid], dict(mine), opt)
             done = _unchanged_view(hit, feats[vid], res)
