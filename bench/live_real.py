@@ -426,6 +426,7 @@ def main():
     ap.add_argument("--guided-seeds", type=int, default=1,
                     help="guided orders per recording: seed 0 starts at the first recorded frame, the others at a "
                          "seeded random frame")
+    ap.add_argument("--guided-seed-start", type=int, default=0, help="the first guided start's seed")
     ap.add_argument("--orders", default="recorded,guided,random",
                     help="any of recorded, guided, random, oracle (greedy on the linearised full result), "
                          "sigma_oracle (greedy on the guide's criterion with the true factors)")
@@ -469,7 +470,8 @@ def main():
             sc = linear_scores(ref, order)
             linear[o] = linear_frames_to_near(sc, list(range(1, len(order) + 1)))
             print(f"  {o}: the linearised model puts it within 3 mm / 0.2 deg after {linear[o]} frames", flush=True)
-        orders = (("recorded", [0]), ("guided", range(args.guided_seeds)),
+        guided = range(args.guided_seed_start, args.guided_seed_start + args.guided_seeds)
+        orders = (("recorded", [0]), ("guided", guided),
                   ("random", range(args.seed_start, args.seed_start + args.seeds)), ("oracle", [0]), ("sigma_oracle", [0]),
                   ("file", [0]))
         for order, seeds in [(o, s) for o, s in orders if o in wanted]:
