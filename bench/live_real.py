@@ -380,6 +380,9 @@ def _speed(rs, batch_cpu_s) -> dict:
     return {"cpu_median_s": med([s["cpu_s"] for s in steps if "cpu_s" in s]),
             "updates_cpu_total_s": med(cpu_total),
             "updates_cpu_over_batch_cpu": med(cpu_total) / batch_cpu_s if batch_cpu_s and cpu_total else None,
+            # the last step is solve itself, in the same process under the same load as the updates
+            "updates_cpu_over_finish_cpu": med([sum(s.get("cpu_s", 0.0) for s in r["steps"]) / r["steps"][-1]["cpu_s"]
+                                                for r in rs if r["steps"] and r["steps"][-1].get("cpu_s")]),
             "guidance_median_s": med([s["guidance_s"] for s in steps if s.get("guidance_s")]),
             "update_with_frontend_median_s_from_20": med([s["latency_s"] + front(s) + s.get("guidance_s", 0.0)
                                                           for s in late]),
@@ -547,17 +550,20 @@ def table(result) -> str:
                          f"{fmt(s['latency_median_s'], '.2f')} | {fmt(s['latency_at_max_frames_s'], '.2f')} | "
                          f"{fmt(s['updates_over_batch'], '.1f')}× | {fmt(s['frontend_total_s'], '.0f')} | "
                          f"{fmt(s['final_max_abs_z'], '.3f')} |")
-    lines += ["", "Speed in CPU time (time.process_time of this process, so the load from other work on the machine "
-              "does not stretch it; the batch solve measured the same way). \"With frontend\": the solver's part plus "
+    lines += ["", "Speed in CPU time (time.process_time of this process; the batch solve measured the same way, once "
+              "before the replays, while the replay's own final step is solve itself under the load the updates ran "
+              "under: the other core's load stretches CPU time too). \"With frontend\": the solver's part plus "
               "the pairwise frontend's pair geometry, rescue and aggregation (features from the cache, apart), the "
               "median over the updates at 20 frames and more:", "",
               "| recording | order | batch solve CPU (s) | median update CPU (s) | all updates incl. final / batch (CPU) | "
-              "median guidance (s, wall) | with frontend, wall (s) | with frontend, CPU (s) |",
-              "|---|---|---|---|---|---|---|---|"]
+              "all updates / the replay's own final solve (CPU) | median guidance (s, wall) | "
+              "with frontend, wall (s) | with frontend, CPU (s) |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for name, rec in result["recordings"].items():
         for order, s in rec["summary"].items():
             lines.append(f"| {name} | {order} | {fmt(rec.get('batch_solve_cpu_s'), '.2f')} | "
                          f"{fmt(s.get('cpu_median_s'), '.2f')} | {fmt(s.get('updates_cpu_over_batch_cpu'), '.1f')}× | "
+                         f"{fmt(s.get('updates_cpu_over_finish_cpu'), '.1f')}× | "
                          f"{fmt(s.get('guidance_median_s'), '.2f')} | "
                          f"{fmt(s.get('update_with_frontend_median_s_from_20'), '.2f')} | "
                          f"{fmt(s.get('update_with_frontend_cpu_median_s_from_20'), '.2f')} |")
