@@ -43,7 +43,9 @@ log = logging.getLogger(__name__)
 # (docs/live.md, "What an update recomputes"): 1-7 % fewer matches in the predictions at 9-30 frames
 # of rwhe_kuka_1 and rwhe_kuka_2 (a new pair keeps its matches where the old view already had depth);
 # rwhe_kuka_1's median update at 20-30 frames 0.69-0.74 -> 0.49-0.54 CPU s in the solver and
-# 1.47-1.51 -> 0.94-0.99 s wall with the frontend; the same frames to 3 mm and 3-sigma cover.
+# 1.47-1.51 -> 0.94-0.99 s wall with the frontend; the same frames to 3 mm and 3-sigma cover there, and
+# fewer on rwhe_kuka_2; its cost: tabb_ds1's guided starts reach that result's own sigma after 25
+# frames instead of 17 (its rotation error hovers at that tolerance).
 REGROW = 2.0
 
 
