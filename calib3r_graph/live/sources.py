@@ -159,9 +159,10 @@ class IncrementalPairwise:
         self.seconds = {"features": t1 - t0, "pairs": time.perf_counter() - t1}
         return new
 
-    def predictions(self, ds, frames, regrow=True) -> Predictions:
+    def predictions(self, ds, frames, every_view=False) -> Predictions:
         """The frontend's aggregation over the pairs of ``frames`` (``ds``: the dataset so far);
-        ``regrow=False``: every view whose pairs changed is aggregated again (else ``self.regrow``)."""
+        ``every_view``: every view whose pairs changed is aggregated again (else an old view waits for
+        ``self.regrow``)."""
         from calib3r_graph.frontends.pairwise import aggregate, match_noise_px, rescue_pairs
 
         t0 = time.perf_counter()
@@ -183,7 +184,7 @@ class IncrementalPairwise:
             if extra:
                 kept, info = self._robot_consistent({**verified, **extra}, sub.base_T_ee)
         views, pairs, _ = aggregate(sub, feats, kept, self.opt, cache=self.aggregated,
-                                    regrow=self.regrow if regrow else None)
+                                    regrow=None if every_view else self.regrow)
         # the robot-guided matching of the new pairs is pair geometry, not aggregation
         self.seconds["rescue"] = rescue_s
         self.seconds["aggregation"] = time.perf_counter() - t0 - rescue_s
@@ -197,5 +198,5 @@ class IncrementalPairwise:
         from calib3r_graph.frontends.pairwise import pairwise_predictions
 
         if self.cache_dir is None:
-            return self.predictions(ds, frames, regrow=False)
+            return self.predictions(ds, frames, every_view=True)
         return pairwise_predictions(subset_dataset(ds, frames), None, self.opt, self.cache_dir, progress=False)
