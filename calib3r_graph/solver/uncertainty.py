@@ -31,24 +31,29 @@ def noise_calibration(observations, residuals, unit_sqrt_info, weights, grid_siz
     whitening; weights: per pair (N,) confidence x robust weight (0 = not used);
     grid_size: view -> (width, height) of the frontend grid.
     """
-    white = [np.matmul(W, e[:, :, None])[:, :, 0] * np.sqrt(w)[:, None]
-             for W, e, w in zip(unit_sqrt_info, residuals, weights)]
-    used = [w > 0 for w in weights]
-    rows = sum(3 * u.sum() for u in used)
-    sigma0_sq = float(sum((r[u] ** 2).sum() for r, u in zip(white, used)) / max(rows, 1))
-    num, den = 0.0, 0
-    for o, r, u in zip(observations, white, used):
-        w_px, h_px = grid_size[o.view_a]
-        cx = np.clip((o.uv_a[:, 0] / w_px * cells[1]).astype(int), 0, cells[1] - 1)
-        cy = np.clip((o.uv_a[:, 1] / h_px * cells[0]).astype(int), 0, cells[0] - 1)
-        cell = (cy * cells[1] + cx)[u]
-        r = r[u]
-        n_c = np.bincount(cell, minlength=cells[0] * cells[1])
-        sums = np.stack([np.bincount(cell, weights=r[:, k], minlength=len(n_c)) for k in range(3)], 1)
-        ok = n_c >= 5
-        # n_c |mean|^2 = |sum|^2 / n_c; expected 3 sigma0^2 for independent errors
-        num += float(((sums[ok] ** 2).sum(1) / n_c[ok]).sum())
-        den += int(ok.sum())
+    if not observations:
+        return 0.0, 1.0
+    # All pairs at once: their matches concatenated, each match's cell numbered within its pair's
+    # (the sums per cell are those of the pairs one by one, in the same order)
+    W, e, w = np.concatenate(unit_sqrt_info), np.concatenate(residuals), np.concatenate(weights)
+    white = (W[:, :, 0] * e[:, :1] + W[:, :, 1] * e[:, 1:2] + W[:, :, 2] * e[:, 2:3]) * np.sqrt(w)[:, None]
+    used = w > 0
+    rows = 3 * int(used.sum())
+    sigma0_sq = float((white[used] ** 2).sum() / max(rows, 1))
+    n_cells = cells[0] * cells[1]
+    counts = [len(o.uv_a) for o in observations]
+    uv = np.concatenate([o.uv_a for o in observations])
+    size = np.repeat(np.array([grid_size[o.view_a] for o in observations], float), counts, axis=0)
+    cx = np.clip((uv[:, 0] / size[:, 0] * cells[1]).astype(int), 0, cells[1] - 1)
+    cy = np.clip((uv[:, 1] / size[:, 1] * cells[0]).astype(int), 0, cells[0] - 1)
+    cell = cy * cells[1] + cx + np.repeat(np.arange(len(observations)) * n_cells, counts)
+    cell, r = cell[used], white[used]
+    n_c = np.bincount(cell, minlength=len(observations) * n_cells)
+    sums = np.stack([np.bincount(cell, weights=r[:, k], minlength=len(n_c)) for k in range(3)], 1)
+    ok = n_c >= 5
+    # n_c |mean|^2 = |sum|^2 / n_c; expected 3 sigma0^2 for independent errors
+    num = float(((sums[ok] ** 2).sum(1) / n_c[ok]).sum())
+    den = int(ok.sum())
     kappa = max(1.0, num / max(den, 1) / (3 * sigma0_sq)) if den else 1.0
     return sigma0_sq, kappa
 
