@@ -22,8 +22,9 @@ uses the weights computed from the previous solution's residuals (new pairs: the
 inliers, as ``solve``'s first round) and the previous update's variance factors; after the LM
 they are recomputed for the next update. The sequence of updates is thus the IRLS iteration
 itself, one round per frame, at the cost of residuals only. Below ``JACKKNIFE_BELOW`` poses,
-where each pose still moves the estimate by more than its noise sigma and lagged weights belong to
-another solution, an update runs ``solve``'s schedule from the warm placement instead (measured in
+where a pose can move the estimate by more than its sigma and lagged weights then belong to
+another solution, an update whose one step moved ee_T_cam by more than ``FEW_MOVE_SIGMAS`` of its
+previous total sigma runs ``solve``'s schedule from the warm placement instead (measured in
 docs/live.md: 8.7-12.1 mm against 1.1-3.2 mm from the full result at 6-9 poses of rwhe_kuka_1),
 one Gauss-Newton step a round.
 :meth:`Engine.finish` runs
@@ -90,6 +91,13 @@ MOVE_SIGMAS = 3.0
 # update at 27 frames 2.52 and 2.38 sigma from solve on the same frames -> 0.62 and 0.61, one or two
 # extra steps in 14 updates.
 EXTRA_STEP_SIGMAS = 1.5
+# Below JACKKNIFE_BELOW poses an update first takes the one step too, and runs solve's schedule from
+# the warm placement only where that step moved ee_T_cam by more than this many of the previous
+# update's total sigma (Engine._update): the schedule is there because with few poses each new pose
+# moves the estimate by more than its sigma, so lagged weights belong to another solution; a
+# measured move below one sigma says this pose did not. Measured on rwhe_kuka_2 at 9-14 poses:
+# moves of 0.2-0.7 sigma; on rwhe_kuka_1's guided order 1.2-3.1 sigma at 6-13 poses (docs/live.md).
+FEW_MOVE_SIGMAS = 1.0
 
 
 @dataclass
@@ -127,6 +135,7 @@ class Engine:
         self._last_cov = {}  # camera -> the last update's total covariance of ee_T_cam
         self.extra_steps = 0  # one-step updates given a re-weighted second step (EXTRA_STEP_SIGMAS)
         self.far_moves = 0  # one-step updates re-run with solve's schedule (_moved_far)
+        self.few_reruns = 0  # one-step updates below JACKKNIFE_BELOW poses re-run (FEW_MOVE_SIGMAS)
 
     # ------------------------------------------------------------------ one update
     def update(self, base_T_ee: dict, preds) -> Solution:
@@ -195,14 +204,18 @@ class Engine:
         # update's own total sigma (inconsistent with it at 3 sigma) is re-run with solve's schedule
         # from the warm placement. Measured on ten replays of rwhe_kuka_1 (docs/live.md): 0-11 of the
         # 16 updates re-run, frames to stay within 3 mm median 18 -> 6.5, CPU of all updates +15 %.
+        # Below JACKKNIFE_BELOW poses the one step is tried too, and kept where it moved ee_T_cam by
+        # less than FEW_MOVE_SIGMAS of the previous total sigma (the schedule's premise, a pose that
+        # moves the estimate by more than its sigma, measured rather than assumed from the count)
         start = values
+        try_one = bool(few and FEW_MOVE_SIGMAS and self._last_cov)
         if cold:
             # solve's schedule with LM to convergence in each round: the first round on the RANSAC
             # inliers, irls_rounds re-weighted rounds, then the noise-calibrated round
             values, conf, weights, inliers, calib = self._schedule(
                 ctx, values, conf, inliers, history, [o.weight * m for o, m in zip(observations, inliers)], ctx.lm)
             values = ctx.lm(values, weights, calib, history)
-        elif few:
+        elif few and not try_one:
             values, conf, weights, inliers, calib = self._schedule(ctx, values, conf, inliers, history)
         else:
             weights, calib = ctx.warm_weights(values, conf, inliers), state.calibration
@@ -210,6 +223,12 @@ class Engine:
         system = None
         if not cold:
             values, system, graph = self._last_step(ctx, values, weights, calib, history)
+            if try_one and self._move(state, values, keys) > FEW_MOVE_SIGMAS:
+                self.few_reruns += 1
+                for k in [k for k in start.keys() if not values.exists(k)]:
+                    start.erase(k)
+                values, conf, weights, inliers, calib = self._schedule(ctx, start, conf, inliers, history)
+                values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if not few and EXTRA_STEP_SIGMAS and self._move(state, values, keys) > EXTRA_STEP_SIGMAS:
                 self.extra_steps += 1
                 weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
