@@ -224,9 +224,7 @@ class Engine:
         if not cold:
             values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if try_one and self._move(state, values, keys) > FEW_MOVE_SIGMAS:
-                self.few_reruns += 1
-                for k in [k for k in start.keys() if not values.exists(k)]:
-                    start.erase(k)
+                self.few_reruns += 1  # (start is what drop_weak left: it dropped views in place)
                 values, conf, weights, inliers, calib = self._schedule(ctx, start, conf, inliers, history)
                 values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if not few and EXTRA_STEP_SIGMAS and self._move(state, values, keys) > EXTRA_STEP_SIGMAS:

@@ -36,7 +36,7 @@ def noise_calibration(observations, residuals, unit_sqrt_info, weights, grid_siz
     # All pairs at once: their matches concatenated, each match's cell numbered within its pair's
     # (the sums per cell are those of the pairs one by one, in the same order)
     W, e, w = np.concatenate(unit_sqrt_info), np.concatenate(residuals), np.concatenate(weights)
-    white = (W[:, :, 0] * e[:, :1] + W[:, :, 1] * e[:, 1:2] + W[:, :, 2] * e[:, 2:3]) * np.sqrt(w)[:, None]
+    white = np.einsum("nij,nj->ni", W, e) * np.sqrt(w)[:, None]  # (as solve.robust_weights whitens)
     used = w > 0
     rows = 3 * int(used.sum())
     sigma0_sq = float((white[used] ** 2).sum() / max(rows, 1))
