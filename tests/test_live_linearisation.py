@@ -75,3 +75,36 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
     assert max(c[0] for c in shares) < 1e-8  # the camera-model share: the same
     assert len(errors) >= 30 and max(errors) < 1e-10, (len(errors), max(errors))  # the step's cost: GTSAM's
     assert min(c[1] for c in shares) > 0  # and not zero (the test would pass on no camera model)
+
+
+def test_an_updates_graph_is_built_where_asked_and_is_the_one_its_step_linearised(simulated, monkeypatch):
+    """An update keeps what its graph is built from (``_Context.deferred_graph``): the update itself
+    needs only the robot factors; the guidance's first use of ``sol.graph`` builds the whole graph,
+    the one the update's last step linearised (the same factors, the same error)."""
+    last = {}
+    hand = live_engine._Context.linear_system
+
+    def kept(ctx, values, weights, calib, camera=True):
+        if camera:  # the system a covariance is computed from
+            last["args"] = (ctx, values, weights, calib)
+        return hand(ctx, values, weights, calib, camera)
+
+    monkeypatch.setattr(live_engine._Context, "linear_system", kept)
+    session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
+                          guide=False)
+    checked = []
+    for f in session.poses_known:
+        up = session.add_frame(f)
+        if not up.ee_T_cam or up.message.startswith("waiting"):
+            continue
+        sol = session.sol
+        assert sol.build_graph is not None and sol.__dict__.get("_graph") is None  # not built by the update
+        graph = sol.graph
+        assert sol.build_graph is None and sol.graph is graph  # built once
+        ctx, values, weights, calib = last["args"]
+        ref = ctx.graph(values, weights, calib)
+        assert graph.size() == ref.size() > ctx.graph(values, weights, calib, scene=False).size()
+        e, e_ref = graph.error(sol.values), ref.error(sol.values)
+        assert abs(e - e_ref) <= 1e-12 * e_ref, (e, e_ref)
+        checked.append(e)
+    assert len(checked) >= 10 and min(checked) > 0, checked

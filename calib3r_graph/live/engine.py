@@ -8,8 +8,10 @@ RANSAC + Umeyama as ``solve``'s initialisation). The step's linearisation also g
 and the linearised jackknife, so an update costs one linearisation (LM to convergence, three or
 more); the iterations are spread over the updates, each starting where the last ended. A step that
 does not lower the cost falls back to LM to convergence; the first solve (cold) runs ``solve``'s
-schedule. Why not iSAM2 (measured in docs/live.md): every update also changes the weights of
-the *old* scene factors (robust re-weighting and the noise calibration rescale all of them) and
+schedule, LM to convergence from the initialisation in its first round and one Gauss-Newton step in
+each later one, as the few-pose re-runs below (LM in every round cost 0.6 CPU s more at rwhe_kuka_1's
+cold start, docs/live.md). Why not iSAM2 (measured in docs/live.md): every update also changes the
+weights of the *old* scene factors (robust re-weighting and the noise calibration rescale all of them) and
 the pairwise frontend re-aggregates old views' depths when a new pair arrives, so iSAM2 would
 have to remove and re-add most factors at every frame; what it saves, relinearising only what
 moved, is what a warm start saves too.
@@ -41,6 +43,10 @@ the noise calibration reuse what the last update computed at its end. The points
 their own cameras are kept while a pair's observations are the same object, and a step's cost check
 uses the residuals at its end that the next weights need anyway (:meth:`_Context.error`).
 
+An update's GTSAM graph is not built: its linear system is linearised by hand
+(:meth:`_Context.linear_system`), the systematic part needs only its robot factors, and the whole
+graph, one factor a pair, is built where the guidance asks for ``sol.graph`` (:class:`_LiveSolution`).
+
 The covariance at every update comes from one linearisation (``jackknife.factor_system``): the
 noise model's marginal (the inverse of the information matrix), the systematic part
 (``systematic.py``, propagated through the same information matrix) and, below ``JACKKNIFE_BELOW`` poses, the cover of the linearised
@@ -48,6 +54,7 @@ leave-one-pose-out jackknife.
 """
 
 import dataclasses
+import functools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -116,6 +123,24 @@ class State:
     correction: dict = field(default_factory=dict)  # view -> (K,)
     ee_T_cam: dict = field(default_factory=dict)  # camera -> Pose3
     calibration: Calibration = field(default_factory=Calibration)
+
+
+class _LiveSolution(Solution):
+    """An update's Solution whose ``graph`` is built on first use (``build_graph``: its builder, from
+    :meth:`_Context.deferred_graph`): the update itself needs only the graph's robot factors, the
+    guidance the whole graph."""
+    build_graph = None
+    robot_graph = None  # the graph's robot, rigidity, gauge and prior factors (plan._rescore_systematic)
+
+    @property
+    def graph(self):
+        if self.__dict__.get("_graph") is None and self.build_graph is not None:
+            self.__dict__["_graph"], self.build_graph = self.build_graph(), None
+        return self.__dict__.get("_graph")
+
+    @graph.setter
+    def graph(self, graph):
+        self.__dict__["_graph"] = graph
 
 
 class Engine:
@@ -210,19 +235,18 @@ class Engine:
         start = values
         try_one = bool(few and FEW_MOVE_SIGMAS and self._last_cov)
         if cold:
-            # solve's schedule with LM to convergence in each round: the first round on the RANSAC
-            # inliers, irls_rounds re-weighted rounds, then the noise-calibrated round
+            # solve's schedule: the first round on the RANSAC inliers with LM to convergence from the
+            # initialisation, then one Gauss-Newton step a round (irls_rounds re-weighted rounds, then
+            # the noise-calibrated round, _last_step), as the few-pose re-runs from a warm placement
             values, conf, weights, inliers, calib = self._schedule(
                 ctx, values, conf, inliers, history, [o.weight * m for o, m in zip(observations, inliers)], ctx.lm)
-            values = ctx.lm(values, weights, calib, history)
         elif few and not try_one:
             values, conf, weights, inliers, calib = self._schedule(ctx, values, conf, inliers, history)
         else:
             weights, calib = ctx.warm_weights(values, conf, inliers), state.calibration
             conf, weights, inliers = ctx.drop_weak(values, conf, weights, inliers)
-        system = None
+        values, system, graph = self._last_step(ctx, values, weights, calib, history)
         if not cold:
-            values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if try_one and self._move(state, values, keys) > FEW_MOVE_SIGMAS:
                 self.few_reruns += 1  # (start is what drop_weak left: it dropped views in place)
                 values, conf, weights, inliers, calib = self._schedule(ctx, start, conf, inliers, history)
@@ -240,7 +264,7 @@ class Engine:
         timings["optimisation"] = time.perf_counter() - t
         t = time.perf_counter()
         if system is None:
-            graph = ctx.graph(values, weights, calib)
+            graph = ctx.deferred_graph(values, weights, calib)
         ctx.weights = weights
         sol = ctx.solution(graph, values, calib, history, timings, system)
         self.last_noise, self.last_information = ctx.noise(calib), ctx.information  # for the guidance
@@ -267,18 +291,17 @@ class Engine:
         self._depth_of = {v: preds.views[v].depth for v in views}
         return sol
 
-    def _schedule(self, ctx, values, conf, sims, history, weights=None, advance=None):
+    def _schedule(self, ctx, values, conf, sims, history, weights=None, first=None):
         """solve's rounds from the warm placement, one Gauss-Newton step a round: the old pairs'
         first on IRLS weights at the warm start, the new pairs' on their RANSAC inliers, the
         re-weighted rounds, then the calibration for the last step (:meth:`_last_step`).
         Views the weights leave undetermined are left out as ``solve`` leaves them out
-        (:meth:`_Context.drop_weak`). ``weights``: the first round's instead; ``advance``: a round's
+        (:meth:`_Context.drop_weak`). ``weights``: the first round's instead; ``first``: the first round's
         optimiser instead of one step (the cold start's LM). (values, conf, weights, sims, calibration)."""
-        advance = advance or ctx.step
         weights, calib = ctx.warm_weights(values, conf, sims) if weights is None else weights, Calibration()
         for rnd in range(self.opt.irls_rounds + 1):
             conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
-            values = advance(values, weights, calib, history)
+            values = (first if rnd == 0 and first else ctx.step)(values, weights, calib, history)
             if rnd < self.opt.irls_rounds:
                 weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
         conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
@@ -287,9 +310,9 @@ class Engine:
 
     def _last_step(self, ctx, values, weights, calib, history):
         """The step whose linearisation serves the covariance: (values, its system moved to the step,
-        the graph it linearised), or LM to convergence where the step does not lower the cost
-        (values, None, None)."""
-        graph = ctx.graph(values, weights, calib)  # (before the step: the whitening cached per pair is at values)
+        what the graph it linearised is built from (:meth:`_Context.deferred_graph`)), or LM to
+        convergence where the step does not lower the cost (values, None, None)."""
+        graph = ctx.deferred_graph(values, weights, calib)  # (before the step: the whitening cached is at values)
         stepped = ctx.gauss_newton(values, history, weights, calib)
         if stepped is None:
             return ctx.lm(values, weights, calib, history), None, None
@@ -550,19 +573,31 @@ class _Context:
         return dataclasses.replace(self.opt.noise, robot_sigma_mm=self.opt.noise.robot_sigma_mm * f,
                                    robot_sigma_deg=self.opt.noise.robot_sigma_deg * f)
 
-    def graph(self, values, weights, calib, scene=True):
-        """The update's graph; ``scene=False``: without its scene factors."""
+    def graph(self, values, weights, calib, scene=True, whitening=None):
+        """The update's graph; ``scene=False``: without its scene factors. ``whitening``: the pairs'
+        :meth:`terms` whitening at ``values``, if already at hand."""
         keys, noise = self.keys, self.noise(calib)
         scale = 1.0 / (calib.sigma0_sq * calib.kappa)
         graph = gtsam.NonlinearFactorGraph()
         if scene:
+            W = self.terms(values)[1] if whitening is None else whitening
             add_scene_factors(graph, keys, self.observations, [w * scale for w in weights], values, self.Ks, noise,
-                              self.opt.reprojection, whitening=self.terms(values)[1])
+                              self.opt.reprojection, whitening=W)
         add_robot_factors(graph, keys, self.views, self.base_T_ee,
                           {c: values.atPose3(keys.hand_eye(c)) for c in self.cameras}, noise)
         add_scale_gauge_factors(graph, keys, self.views, noise)
         add_depth_correction_priors(graph, keys, self.views, noise)
         return graph
+
+    def deferred_graph(self, values, weights, calib) -> tuple:
+        """What :meth:`graph` builds the update's whole graph from: (values, weights, calibration, the
+        pairs' whitening at values), kept rather than built. An update needs only its robot factors
+        (the systematic part); its linear system comes from :meth:`linear_system`, which linearises
+        the scene factors by hand. The whole graph, one GTSAM factor a pair (0.033 of a one-step
+        update's 0.41 CPU s on rwhe_kuka_1), is built where the guidance asks for it
+        (:class:`_LiveSolution`); with reprojection factors, whose linearisation is GTSAM's, at once."""
+        at = (values, weights, calib, self.terms(values)[1])
+        return self.graph(*at[:3], whitening=at[3]) if self.opt.reprojection else at
 
     def linear_system(self, values, weights, calib, camera=True) -> tuple:
         """:func:`factor_system` of :meth:`graph` with these weights and calibration at ``values``,
@@ -697,8 +732,13 @@ class _Context:
         return Calibration(sigma0_sq, kappa, robot_factor, (float(chi2), 6 * n_frames - 13))
 
     def solution(self, graph, values, calib, history, timings, system=None) -> Solution:
-        """``system``: (H, offsets, factors) of ``graph`` about ``values`` (factor_system), if already there."""
+        """``graph``: the graph, or what :meth:`deferred_graph` keeps to build it; ``system``: (H,
+        offsets, factors) of that graph about ``values`` (factor_system), if already there."""
         keys, cameras, views = self.keys, self.cameras, self.views
+        build = None
+        if isinstance(graph, tuple):
+            build = functools.partial(self.graph, *graph[:3], whitening=graph[3])
+            graph = self.graph(*graph[:3], scene=False)  # the robot factors: all the systematic part needs
         if system is None:
             system = self.linear_system(values, self.weights, calib)
         H, offsets, _ = system
@@ -731,16 +771,18 @@ class _Context:
                                        "robot_chi2_dof": calib.robot_fit},
                  "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": axis.tolist()},
                  "systematic": {c: systematic[c].to_json() for c in cameras}}
-        sol = Solution(ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras}, covariance=covariance,
+        sol = _LiveSolution(ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras}, covariance=covariance,
                        covariance_model=covariance_model, systematic=systematic, metric_scale=metric,
                        base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
                        depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
                        depth_correction={v: depth_correction(values, keys, v) for v in views},
                        init_ee_T_cam={}, stats=stats,
                        views_dropped=[{"view": v, "reason": r} for v, r in self.dropped.items()],
-                       diagnostics=motion_diagnostics(self.base_T_ee, used_frames), graph=graph, values=values,
+                       diagnostics=motion_diagnostics(self.base_T_ee, used_frames),
+                       graph=graph if build is None else None, values=values,
                        keys=keys, observations=self.observations,
                        scene_weight_scale=1.0 / (calib.sigma0_sq * calib.kappa))
+        sol.build_graph, sol.robot_graph = build, graph if build is not None else None
         if wanted(self.opt.jackknife, len(used_frames)):
             jk, suspect = linearised_jackknife(sol, system)
             for c, rep in jk.items():

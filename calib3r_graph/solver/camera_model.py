@@ -281,7 +281,8 @@ def add_camera_model(sol, ds, weights, Ks, noise, at=None, **shared):
     ``system`` or ``terms`` at those values (a live update's Gauss-Newton step
     linearised before it moved: its H and its pairs' terms are both from there)."""
     t = time.perf_counter()
-    cm = camera_model_errors(sol.graph, sol.values if at is None else at, sol.keys, sol.observations, weights, Ks, noise,
+    graph = sol.graph if shared.get("system") is None else None  # (a live update's: built only where asked)
+    cm = camera_model_errors(graph, sol.values if at is None else at, sol.keys, sol.observations, weights, Ks, noise,
                              {c: ds.cameras[c] for c in sol.keys.cameras},
                              ds.meta.get("params_sigma_source", "dataset.yaml"), **shared)
     for c, err in cm.items():

@@ -129,7 +129,8 @@ def linearised_jackknife(sol, system=None) -> tuple[dict, dict | None]:
     chi2 without frame i, ``sum ||A_k dx - b_k||^2`` over the remaining robot factors, feeds
     :func:`influential_pose` as the re-solves' chi2 does (the robot noise level cancels in its F).
     """
-    out, fits, full = linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam), system)
+    graph = sol.graph if system is None else None  # (a live update's graph is built only where asked)
+    out, fits, full = linearised_leave_one_out(graph, sol.values, sol.keys, list(sol.base_T_cam), system)
     xis = {c: [sol.ee_T_cam[c].retract(d[c]) for d in out.values()] for c in sol.ee_T_cam}
     report = _jackknife_report(sol, xis)
     for rep in report.values():

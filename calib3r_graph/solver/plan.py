@@ -606,7 +606,11 @@ def _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_m
     out_keys = [k for c in cameras for k in (keys.hand_eye(c), keys.metric(c))]
     for i in pick:
         fs, vals, S_out, jk_after = parts[i]
-        graph, values = gtsam.NonlinearFactorGraph(sol.graph), gtsam.Values(sol.values)
+        # the robot factors are all propagate needs (a live update keeps them apart: its whole graph is
+        # built only where asked), on the same keys as the whole graph's
+        robot_graph = getattr(sol, "robot_graph", None)
+        graph = gtsam.NonlinearFactorGraph(sol.graph if robot_graph is None else robot_graph)
+        values = gtsam.Values(sol.values)
         for f in fs:
             graph.add(f)
         M, korder, dims = _candidate_information(sol, fs, vals, offsets, k_new)
