@@ -108,3 +108,41 @@ def test_an_updates_graph_is_built_where_asked_and_is_the_one_its_step_linearise
         assert abs(e - e_ref) <= 1e-12 * e_ref, (e, e_ref)
         checked.append(e)
     assert len(checked) >= 10 and min(checked) > 0, checked
+
+
+def test_a_pairs_point_covariances_are_computed_once_while_its_matches_and_sigmas_stay(simulated, monkeypatch):
+    """A pair's point covariances (its matches in their own cameras, from the pixel and depth sigmas)
+    do not depend on the estimate, so an update computes them only for the pairs whose observations
+    are new. The session sets the predictions' match noise into new noise options at every update;
+    the cache once compared those by identity and missed every pair of every update (rwhe_kuka_1's
+    recorded replay: all 168 pairs again at 30 frames). A changed sigma still recomputes them all."""
+    import dataclasses
+
+    calls = []
+    own = live_engine.point_covariances
+    monkeypatch.setattr(live_engine, "point_covariances",
+                        lambda o, *a: calls.append((o.view_a, o.view_b)) or own(o, *a))
+    session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
+                          guide=False)
+    assert session.pixel_from_predictions
+    engine, warm, frames = session.engine, [], list(session.poses_known)
+    for f in frames[:-1]:
+        kept = {k: c[0] for k, c in engine._covariances.items()}  # pair -> the observations they are of
+        calls.clear()
+        up = session.add_frame(f)
+        if not up.ee_T_cam or up.message.startswith("waiting"):
+            continue
+        again = [k for k in calls if k in kept and engine._obs[k][3] is kept[k]]  # same matches, same sigmas
+        assert not again, again
+        warm.append((len(calls), len(engine._covariances)))
+    assert len(warm) >= 8 and all(n < total for n, total in warm[2:]), warm
+    for (a, b), (o, sigmas, (C_a, C_b)) in engine._covariances.items():  # what is kept is what it would compute
+        assert sigmas == (engine.opt.noise.pixel_sigma_px, engine.opt.noise.depth_sigma_rel)
+        K = session.preds.views
+        F_a, F_b = own(o, K[a].K, K[b].K, engine.opt.noise)
+        assert np.array_equal(C_a, F_a) and np.array_equal(C_b, F_b)
+    session.pixel_from_predictions = False  # (else the next update sets the predictions' sigma back)
+    engine.opt = dataclasses.replace(engine.opt, noise=dataclasses.replace(engine.opt.noise, pixel_sigma_px=0.7))
+    calls.clear()
+    up = session.add_frame(frames[-1])
+    assert up.ee_T_cam and set(calls) == set(engine._covariances) and len(calls) == len(engine._covariances)

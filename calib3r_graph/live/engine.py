@@ -156,7 +156,7 @@ class Engine:
         # per-pair caches, keyed by (view_a, view_b): what depends only on inputs that did not change
         self._obs = {}  # -> (PairMatches, ViewPrediction a, ViewPrediction b, PairObservations or None)
         self._terms = {}  # -> (PairObservations, view a's values, view b's, noise, residuals, whitening)
-        self._covariances = {}  # -> (PairObservations, noise options, their point_covariances)
+        self._covariances = {}  # -> (PairObservations, (pixel sigma, depth sigma), their point_covariances)
         self._last_cov = {}  # camera -> the last update's total covariance of ee_T_cam
         self.extra_steps = 0  # one-step updates given a re-weighted second step (EXTRA_STEP_SIGMAS)
         self.far_moves = 0  # one-step updates re-run with solve's schedule (_moved_far)
@@ -486,7 +486,7 @@ class _Context:
         self.ds, self.base_T_ee, self.preds, self.observations = ds, base_T_ee, preds, observations
         self.keys, self.Ks, self.views, self.cameras, self.opt = keys, Ks, views, cameras, opt
         self.cache = {} if cache is None else cache
-        self.covariances = {} if covariances is None else covariances  # pair -> (obs, noise, point_covariances)
+        self.covariances = {} if covariances is None else covariances  # pair -> (obs, sigmas, point_covariances)
         self.linearised_at = None  # the values the last linear system was linearised at
         self.dropped = {}  # view -> why drop_weak left it out of this update
         self._camera_lins = None  # what the last linear system's camera-model terms are computed from
@@ -704,15 +704,18 @@ class _Context:
     def nominal_whitening(self, values, observations=None):
         """Each pair's point_sqrt_info at ``values`` with unit weights; the point covariances in
         their own cameras, which do not depend on ``values``, are kept per pair across rounds and
-        updates while the pair's observations are the same object (0.015 of a whitening pass's
-        0.039 CPU s over rwhe_kuka_1's 151 pairs; the same numbers)."""
+        updates while the pair's observations are the same object and the two sigmas they read are
+        equal (0.015 of a whitening pass's 0.039 CPU s over rwhe_kuka_1's 151 pairs; the same numbers).
+        Equal, not the same object: a session replaces the noise options at every update with the
+        predictions' match noise, and an identity test missed every pair of every update."""
         keys, noise = self.keys, self.opt.noise
+        sigmas = (noise.pixel_sigma_px, noise.depth_sigma_rel)  # all point_covariances reads of the noise
         out = []
         for o in (observations or self.observations):
             key = (o.view_a, o.view_b)
             c = self.covariances.get(key)
-            if c is None or c[0] is not o or c[1] is not noise:
-                c = (o, noise, point_covariances(o, self.Ks[o.view_a], self.Ks[o.view_b], noise))
+            if c is None or c[0] is not o or c[1] != sigmas:
+                c = (o, sigmas, point_covariances(o, self.Ks[o.view_a], self.Ks[o.view_b], noise))
                 self.covariances[key] = c
             out.append(point_sqrt_info(o, self.Ks[o.view_a], self.Ks[o.view_b],
                                        values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))),
