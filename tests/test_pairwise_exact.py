@@ -1,6 +1,7 @@
 """The pairwise frontend's faster steps give the same numbers as the straightforward ones they
-replaced (frontends/pairwise.py): the epipolar-band candidates (blocked, row-major), the sparse
-mutual ratio test (segment reductions, not lexsorts), the RANSAC's stacked hand-eye rotations, and
+replaced (frontends/pairwise.py): the epipolar-band candidates (blocked, row-major), the dense
+mutual ratio test (one column max, not the survivors' columns gathered), the sparse mutual ratio
+test (segment reductions, not lexsorts), the RANSAC's stacked hand-eye rotations, and
 the aggregation's cache (a view whose depths come out the same keeps its prediction object). Every
 comparison is exact (np.array_equal), not to a tolerance: the live result's equality with the batch
 ``solve`` rests on it."""
@@ -85,6 +86,44 @@ def test_sparse_mutual_ratio_is_that_of_the_lexsorts_with_ties_and_any_order():
         sim = rng.choice(levels, len(u)) if k % 3 else rng.random(len(u)).astype(np.float32)
         i, j = u[:, 0], u[:, 1]
         assert _equal(pw._sparse_mutual_ratio(i, j, sim, 0.8), _lexsort_mutual_ratio(i, j, sim, 0.8))
+
+
+def _gathered_mutual_ratio(S, ratio):
+    """The dense mutual ratio test with the survivors' columns gathered (the former _mutual_ratio)."""
+    rows = np.arange(S.shape[0])
+    best = S.argmax(1)
+    s1 = S[rows, best]
+    T = S.copy()
+    T[rows, best] = -np.inf
+    s2 = T.max(1)
+    r = np.sqrt(np.maximum(2 - 2 * s1, 0)) / np.maximum(np.sqrt(np.maximum(2 - 2 * s2, 0)), 1e-9)
+    keep = np.flatnonzero(r < ratio)
+    keep = keep[S[:, best[keep]].max(0) <= s1[keep]]
+    return rows[keep], best[keep], r[keep]
+
+
+def test_dense_mutual_ratio_is_that_of_the_gathered_columns_with_ties():
+    """Unit descriptors (many matches survive the ratio test) and similarities with exact ties: the
+    same matches, ratios and order, and S as it was."""
+    rng = np.random.default_rng(3)
+    kept = 0
+    for k in range(60):
+        n_a, n_b = int(rng.integers(2, 300)), int(rng.integers(2, 300))
+        if k % 2:
+            S = rng.choice(np.array([0.2, 0.6, 0.9, 0.97], np.float32), (n_a, n_b))
+        else:
+            A = rng.standard_normal((n_a, 16)).astype(np.float32)
+            B = np.r_[A[rng.permutation(n_a)[:min(n_a, n_b)]], rng.standard_normal((max(0, n_b - n_a), 16))]
+            B = (B + 0.1 * rng.standard_normal(B.shape)).astype(np.float32)
+            A /= np.linalg.norm(A, axis=1, keepdims=True)
+            B /= np.linalg.norm(B, axis=1, keepdims=True)
+            S = A @ B.T
+        before = S.copy()
+        got = pw._mutual_ratio(S, 0.8)
+        assert np.array_equal(S, before)
+        assert _equal(got, _gathered_mutual_ratio(before, 0.8))
+        kept += len(got[0])
+    assert kept > 1000
 
 
 def test_stacked_hand_eye_rotations_are_the_one_by_one_ones():

@@ -257,8 +257,10 @@ def _mutual_ratio(S, ratio):
     d2 = np.sqrt(np.maximum(2 - 2 * s2, 0))
     r = d1 / np.maximum(d2, 1e-9)
     keep = np.flatnonzero(r < ratio)
-    # mutual check, on the survivors' columns only (a full column argmax is the slow axis)
-    keep = keep[S[:, best[keep]].max(0) <= s1[keep]]
+    # mutual check: each survivor is its column's best. One max over all columns, not a gather of the
+    # survivors' columns (strided: 42 -> 23 ms a pair on rwhe_kuka_1's 2700 features, about 270
+    # survivors; the same matches) nor an argmax along them (the slow axis: 0.4 s at 4000 x 4000)
+    keep = keep[S.max(0)[best[keep]] <= s1[keep]]
     return rows[keep], best[keep], r[keep]
 
 
