@@ -338,8 +338,7 @@ class LiveSession:
         t1, c1 = time.perf_counter(), time.process_time()
         front["aggregation"] = t1 - tf - front.get("rescue", 0.0)  # robot-guided matching: pair geometry
         up = Update(self.step, frames, 0.0, front, skipped=skipped, frontend_cpu_s=c1 - self._c0)
-        if (self.pixel_from_predictions and "match_noise_px" in preds.info
-                and float(preds.info["match_noise_px"]) != self.engine.opt.noise.pixel_sigma_px):
+        if self.pixel_from_predictions and "match_noise_px" in preds.info:
             noise = dataclasses.replace(self.engine.opt.noise, pixel_sigma_px=float(preds.info["match_noise_px"]))
             self.engine.opt = dataclasses.replace(self.engine.opt, noise=noise)
         try:

@@ -604,12 +604,13 @@ def _rescore_systematic(sol, base_T_ee, proposals, parts, offsets, S, k_new, d_m
              for v in robot_views(keys, list(sol.base_T_cam))]
     H = None
     out_keys = [k for c in cameras for k in (keys.hand_eye(c), keys.metric(c))]
+    # the robot factors are all propagate needs (a live update keeps them apart: its whole graph is
+    # built only where asked), on the same keys as the whole graph's
+    base = getattr(sol, "robot_graph", None)
+    base = sol.graph if base is None else base
     for i in pick:
         fs, vals, S_out, jk_after = parts[i]
-        # the robot factors are all propagate needs (a live update keeps them apart: its whole graph is
-        # built only where asked), on the same keys as the whole graph's
-        robot_graph = getattr(sol, "robot_graph", None)
-        graph = gtsam.NonlinearFactorGraph(sol.graph if robot_graph is None else robot_graph)
+        graph = gtsam.NonlinearFactorGraph(base)
         values = gtsam.Values(sol.values)
         for f in fs:
             graph.add(f)
