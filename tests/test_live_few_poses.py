@@ -107,5 +107,6 @@ def test_an_update_that_moves_more_than_its_sigma_takes_a_reweighted_second_step
                 worst[extra].append(_z_to_solve(session, ds, preds, n))
         assert session.engine.far_moves == 0
         assert session.engine.extra_steps == (3 if extra else 0), session.engine.extra_steps
-    # measured: 0.11-0.21 sigma from solve with one step, 0.02-0.04 with the second
-    assert all(b < 0.5 * a for a, b in zip(worst[0.0], worst[1e-9])) and max(worst[1e-9]) < 0.1, worst
+    # measured: 0.05-0.23 sigma from solve with one step (its linearisation partly kept, live/linearisation.py;
+    # 0.11-0.21 with every pair linearised anew), 0.03-0.05 with the second
+    assert all(b < a for a, b in zip(worst[0.0], worst[1e-9])) and max(worst[1e-9]) < 0.1, worst

@@ -13,8 +13,11 @@ each later one, as the few-pose re-runs below (LM in every round cost 0.6 CPU s 
 cold start, docs/live.md). Why not iSAM2 (measured in docs/live.md): every update also changes the
 weights of the *old* scene factors (robust re-weighting and the noise calibration rescale all of them) and
 the pairwise frontend re-aggregates old views' depths when a new pair arrives, so iSAM2 would
-have to remove and re-add most factors at every frame; what it saves, relinearising only what
-moved, is what a warm start saves too.
+have to remove and re-add most factors at every frame. What it saves, relinearising only what
+moved, is done here per pair (``linearisation.py``): a pair's linear factor is kept and moved to
+the new point while its weights are within 1 % of those it was linearised with and its linear
+model's predicted change is small, and a pair's whitening while its relative rotation and scale
+ratio stay within ``WHITENING_TOL``.
 
 Robust re-weighting and noise calibration run at every update, lagged by one (an update whose one
 step moves ee_T_cam by more than ``EXTRA_STEP_SIGMAS`` of its previous total sigma takes a second
@@ -35,7 +38,8 @@ so the final result is ``solve``'s on the same frames and predictions (see its d
 not warm).
 
 Per pair, what depends only on unchanged inputs is kept from the last update (by identity of the
-inputs, so the numbers are those a rebuild gives): the observations of pairs whose matches and
+inputs, so the numbers are those a rebuild gives; the kept linearisations and whitenings above are
+the exceptions, within their tolerances): the observations of pairs whose matches and
 views' predictions did not change (:meth:`Engine._observations`), and the match residuals and
 nominal whitening of pairs whose views did not move (:meth:`_Context.terms`): the warm start of the
 old views is the last solution, so the IRLS weights at the warm start, the graph's whitening and
@@ -67,7 +71,7 @@ from calib3r_graph.io.predictions import split_view_id
 from calib3r_graph.solver.graph import (MIN_FACTOR_MATCHES, Keys, add_depth_correction_priors, add_robot_factors,
                                         add_scale_gauge_factors, add_scene_factors, depth_correction, match_residuals,
                                         point_covariances, point_sqrt_info, robot_chi2, robot_views,
-                                        scene_linearisation)
+                                        scene_keys, scene_linearisation)
 from factors.match3d import DEPTH_CORRECTION_DIM
 from calib3r_graph.solver.init import initialise, pairwise_sim3
 from calib3r_graph.solver.jackknife import (JACKKNIFE_BELOW, cover, factor_system, linearised_jackknife, moved_system,
@@ -75,7 +79,8 @@ from calib3r_graph.solver.jackknife import (JACKKNIFE_BELOW, cover, factor_syste
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.solve import (MIN_ROBOT_POSES, Solution, SolveOptions, levenberg_marquardt,
                                         robust_weights)
-from calib3r_graph.solver.camera_model import add_camera_model, camera_parameters, pair_sensitivity
+from calib3r_graph.solver.camera_model import add_camera_model, camera_parameters, pair_sensitivities
+from calib3r_graph.live.linearisation import PairLinearisation, point
 from calib3r_graph.solver.systematic import systematic_errors
 from calib3r_graph.solver.uncertainty import (covariance_diagnostics, motion_diagnostics, noise_calibration,
                                               systematic_error_gain)
@@ -105,6 +110,10 @@ EXTRA_STEP_SIGMAS = 1.5
 # measured move below one sigma says this pose did not. Measured on rwhe_kuka_2 at 9-14 poses:
 # moves of 0.2-0.7 sigma; on rwhe_kuka_1's guided order 1.2-3.1 sigma at 6-13 poses (docs/live.md).
 FEW_MOVE_SIGMAS = 1.0
+# A pair's whitening (point_sqrt_info) is kept while its relative rotation (rad) and depth-scale
+# ratio (relative) stay within this of where it was computed (_Context.nominal_whitening): W changes
+# by about that fraction
+WHITENING_TOL = 1e-3
 
 
 @dataclass
@@ -157,6 +166,8 @@ class Engine:
         self._obs = {}  # -> (PairMatches, ViewPrediction a, ViewPrediction b, PairObservations or None)
         self._terms = {}  # -> (PairObservations, view a's values, view b's, noise, residuals, whitening)
         self._covariances = {}  # -> (PairObservations, (pixel sigma, depth sigma), their point_covariances)
+        self._kept = {}  # -> linearisation.PairLinearisation: its last linearised factor, reused while it holds
+        self._whitening = {}  # -> (PairObservations, sigmas, R_ab, s_b / s_a, its point_sqrt_info there)
         self._last_cov = {}  # camera -> the last update's total covariance of ee_T_cam
         self.extra_steps = 0  # one-step updates given a re-weighted second step (EXTRA_STEP_SIGMAS)
         self.far_moves = 0  # one-step updates re-run with solve's schedule (_moved_far)
@@ -208,7 +219,7 @@ class Engine:
         keys = Keys(views, cameras)
         Ks = {v: preds.views[v].K for v in views}
         ctx = _Context(self.ds, base_T_ee, preds, observations, keys, Ks, views, cameras,
-                       self.opt, self._terms, self._covariances)
+                       self.opt, self._terms, self._covariances, self._kept, self._whitening)
         values = ctx.values(state)
         conf = [o.weight for o in observations]
         t = time.perf_counter()
@@ -278,7 +289,7 @@ class Engine:
         new_weights = robust_weights(ctx.observations, res, W, conf)
         next_calib = ctx.calibrate(values, new_weights, res, W) if self.opt.noise_calibration else Calibration()
         live = {(o.view_a, o.view_b) for o in ctx.observations}
-        for cache in (self._terms, self._covariances):
+        for cache in (self._terms, self._covariances, self._kept, self._whitening):
             for k in [k for k in cache if k not in live]:
                 del cache[k]
         timings["next_weights"] = time.perf_counter() - t
@@ -299,6 +310,7 @@ class Engine:
         (:meth:`_Context.drop_weak`). ``weights``: the first round's instead; ``first``: the first round's
         optimiser instead of one step (the cold start's LM). (values, conf, weights, sims, calibration)."""
         weights, calib = ctx.warm_weights(values, conf, sims) if weights is None else weights, Calibration()
+        ctx.fresh = True  # solve's own schedule: every pair linearised anew
         for rnd in range(self.opt.irls_rounds + 1):
             conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
             values = (first if rnd == 0 and first else ctx.step)(values, weights, calib, history)
@@ -482,11 +494,19 @@ class _Context:
     """What one update's graph is built from, and the steps of ``solve`` on it."""
 
     def __init__(self, ds, base_T_ee, preds, observations, keys, Ks, views, cameras, opt, cache=None,
-                 covariances=None):
+                 covariances=None, kept=None, whitening=None):
         self.ds, self.base_T_ee, self.preds, self.observations = ds, base_T_ee, preds, observations
         self.keys, self.Ks, self.views, self.cameras, self.opt = keys, Ks, views, cameras, opt
         self.cache = {} if cache is None else cache
         self.covariances = {} if covariances is None else covariances  # pair -> (obs, sigmas, point_covariances)
+        self.kept = {} if kept is None else kept  # pair -> linearisation.PairLinearisation
+        self.whitening = {} if whitening is None else whitening  # pair -> (obs, sigmas, R_ab, ratio, W)
+        # whether a linear system may reuse kept linearisations (linearisation.py): in an update's
+        # first step only. A later step of the same update (the re-weighted second step, a re-run
+        # of solve's schedule) follows a large move, where a factor linearised before it predicts
+        # least well, and the schedule is to be solve's own (tests/test_live_few_poses.py: a re-run
+        # with kept factors ended 0.14 sigma from solve's result, against 0.1 allowed)
+        self.fresh = False
         self.linearised_at = None  # the values the last linear system was linearised at
         self.dropped = {}  # view -> why drop_weak left it out of this update
         self._camera_lins = None  # what the last linear system's camera-model terms are computed from
@@ -620,29 +640,55 @@ class _Context:
         H, _, factors = factor_system(rest, values, offsets)
         noise, scale = self.noise(calib), 1.0 / (calib.sigma0_sq * calib.kappa)
         thetas, steps = camera_parameters(self.keys, self.ds.cameras, self.Ks) if camera else ([], [])
-        lins = []
-        for o, w, W in zip(self.observations, weights, self.terms(values)[1]):
-            lin = scene_linearisation(o, w * scale, values, self.keys, self.Ks, noise, W)
+        sigmas, corr = (self.opt.noise.pixel_sigma_px, self.opt.noise.depth_sigma_rel), noise.depth_correction_sigma > 0
+        lins, moved, W = [], {}, self.terms(values)[1]
+        for i, (o, w) in enumerate(zip(self.observations, weights)):
+            pair = (o.view_a, o.view_b)
+            kept = self.kept.get(pair)  # the pair's last linearisation, moved here where it holds (linearisation.py)
+            m = None if self.fresh or kept is None or (thetas and kept.term is None) else kept.moved(
+                o, w, scale, sigmas, values, self.keys, corr)
+            if m is not None:
+                k = scene_keys(o, self.keys, noise)
+                idx = np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])
+                H[np.ix_(idx, idx)] += m[0]
+                factors.append((k, idx) + m[:3])
+                moved[i] = (kept,) + m[3:]
+                lins.append(None)
+                continue
+            lin = scene_linearisation(o, w * scale, values, self.keys, self.Ks, noise, W[i])
             lins.append(lin if thetas else None)
+            self.kept.pop(pair, None)
             if lin is None:
                 continue
             k, _, _, J, e = lin
             idx = np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])
-            AtA = J.T @ J
+            AtA, Atb, btb = J.T @ J, -(J.T @ e), float(e @ e)
             H[np.ix_(idx, idx)] += AtA
-            factors.append((k, idx, AtA, -(J.T @ e), float(e @ e)))
+            factors.append((k, idx, AtA, Atb, btb))
+            self.kept[pair] = PairLinearisation(o, sigmas, point(o, values, self.keys, corr), np.array(w, float),
+                                                scale, AtA, Atb, btb)
         if camera:
-            self._camera_lins = (lins, values, noise, thetas, steps)
+            self._camera_lins = (lins, values, noise, thetas, steps, moved)
         return H, offsets, factors
 
     def camera_terms(self):
         """The last linear system's camera-model terms per pair (camera_model.pair_sensitivity of its
-        Jacobians), or None where it kept none (``camera=False``, or reprojection factors)."""
+        Jacobians; a reused linearisation's moved with it, linearisation.py), or None where it kept
+        none (``camera=False``, or reprojection factors)."""
         if self._camera_lins is None:
             return None
-        lins, values, noise, thetas, steps = self._camera_lins
-        return [None if lin is None else pair_sensitivity(lin, values, self.keys, self.Ks, noise, thetas, steps)
-                for lin in lins]
+        lins, values, noise, thetas, steps, moved = self._camera_lins
+        out = pair_sensitivities(lins, values, self.keys, self.Ks, noise, thetas, steps)
+        for i, (o, lin, t) in enumerate(zip(self.observations, lins, out)):
+            if i in moved:
+                kept, delta, r = moved[i]
+                term = kept.moved_term(delta, r)
+                out[i] = None if term is None else (scene_keys(o, self.keys, noise),) + term
+                continue
+            kept = self.kept.get((o.view_a, o.view_b))
+            if lin is not None and kept is not None and kept.obs is o:  # (linearised in this system)
+                kept.term = () if t is None else t[1:]
+        return out
 
     def gauss_newton(self, values, history, weights, calib, camera=True):
         """One Gauss-Newton step from the warm start, on one linearisation that also serves the
@@ -651,6 +697,7 @@ class _Context:
         are spread over the updates (each update's step starts where the last ended), as the IRLS
         rounds are, and each update costs one linearisation instead of LM's three or more."""
         H, offsets, factors = self.linear_system(values, weights, calib, camera)
+        self.fresh = True  # (the update's later steps linearise every pair anew)
         g = np.zeros(len(H))
         for _, idx, _, Atb, _ in factors:
             g[idx] += Atb
@@ -702,25 +749,37 @@ class _Context:
         return values
 
     def nominal_whitening(self, values, observations=None):
-        """Each pair's point_sqrt_info at ``values`` with unit weights; the point covariances in
-        their own cameras, which do not depend on ``values``, are kept per pair across rounds and
-        updates while the pair's observations are the same object and the two sigmas they read are
-        equal (0.015 of a whitening pass's 0.039 CPU s over rwhe_kuka_1's 151 pairs; the same numbers).
-        Equal, not the same object: a session replaces the noise options at every update with the
-        predictions' match noise, and an identity test missed every pair of every update."""
+        """Each pair's point_sqrt_info at ``values`` with unit weights. It depends on the pair's
+        relative rotation and depth-scale ratio alone (view b's point covariances rotated and scaled
+        into a's frame), so a pair's is kept while both are within ``WHITENING_TOL`` (rad, relative)
+        of where it was computed: W then differs by about that fraction (the relative poses of
+        rwhe_kuka_1's old pairs move by 1-4e-4 rad an update, linearisation.py). The point
+        covariances in their own cameras, which do not depend on ``values``, are kept per pair
+        across rounds and updates while the pair's observations are the same object and the two
+        sigmas they read are equal (0.015 of a whitening pass's 0.039 CPU s over rwhe_kuka_1's 151
+        pairs; the same numbers). Equal, not the same object: a session replaces the noise options
+        at every update with the predictions' match noise, and an identity test missed every pair
+        of every update."""
         keys, noise = self.keys, self.opt.noise
         sigmas = (noise.pixel_sigma_px, noise.depth_sigma_rel)  # all point_covariances reads of the noise
         out = []
         for o in (observations or self.observations):
             key = (o.view_a, o.view_b)
+            R = values.atPose3(keys.pose(o.view_a)).rotation().between(values.atPose3(keys.pose(o.view_b)).rotation())
+            ratio = values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a))
+            w = self.whitening.get(key)
+            if w is not None and w[0] is o and w[1] == sigmas and abs(ratio / w[3] - 1) <= WHITENING_TOL \
+                    and np.linalg.norm(gtsam.Rot3.Logmap(w[2].between(R))) <= WHITENING_TOL:
+                out.append(w[4])
+                continue
             c = self.covariances.get(key)
             if c is None or c[0] is not o or c[1] != sigmas:
                 c = (o, sigmas, point_covariances(o, self.Ks[o.view_a], self.Ks[o.view_b], noise))
                 self.covariances[key] = c
-            out.append(point_sqrt_info(o, self.Ks[o.view_a], self.Ks[o.view_b],
-                                       values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))),
-                                       values.atDouble(keys.scale(o.view_b)) / values.atDouble(keys.scale(o.view_a)),
-                                       noise, np.ones(len(o)), c[2]))
+            W = point_sqrt_info(o, self.Ks[o.view_a], self.Ks[o.view_b], gtsam.Pose3(R, np.zeros(3)), ratio, noise,
+                                np.ones(len(o)), c[2])
+            self.whitening[key] = (o, sigmas, R, ratio, W)
+            out.append(W)
         return out
 
     def calibrate(self, values, weights, residuals, whitening) -> Calibration:
