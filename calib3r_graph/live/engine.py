@@ -642,6 +642,7 @@ class _Context:
         thetas, steps = camera_parameters(self.keys, self.ds.cameras, self.Ks) if camera else ([], [])
         sigmas, corr = (self.opt.noise.pixel_sigma_px, self.opt.noise.depth_sigma_rel), noise.depth_correction_sigma > 0
         lins, moved, W = [], {}, self.terms(values)[1]
+        columns = lambda k: np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])  # noqa: E731
         for i, (o, w) in enumerate(zip(self.observations, weights)):
             pair = (o.view_a, o.view_b)
             kept = self.kept.get(pair)  # the pair's last linearisation, moved here where it holds (linearisation.py)
@@ -649,7 +650,7 @@ class _Context:
                 o, w, scale, sigmas, values, self.keys, corr)
             if m is not None:
                 k = scene_keys(o, self.keys, noise)
-                idx = np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])
+                idx = columns(k)
                 H[np.ix_(idx, idx)] += m[0]
                 factors.append((k, idx) + m[:3])
                 moved[i] = (kept,) + m[3:]
@@ -661,7 +662,7 @@ class _Context:
             if lin is None:
                 continue
             k, _, _, J, e = lin
-            idx = np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])
+            idx = columns(k)
             AtA, Atb, btb = J.T @ J, -(J.T @ e), float(e @ e)
             H[np.ix_(idx, idx)] += AtA
             factors.append((k, idx, AtA, Atb, btb))
