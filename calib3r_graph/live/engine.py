@@ -673,7 +673,7 @@ class _Context:
         return H, offsets, factors
 
     def camera_terms(self):
-        """The last linear system's camera-model terms per pair (camera_model.pair_sensitivity of its
+        """The last linear system's camera-model terms per pair (camera_model.pair_sensitivities of its
         Jacobians; a reused linearisation's moved with it, linearisation.py), or None where it kept
         none (``camera=False``, or reprojection factors)."""
         if self._camera_lins is None:

@@ -34,7 +34,7 @@ re-weighted second step or a re-run of ``solve``'s schedule, follows a large mov
 linearised before it predicts least well, and the schedule is to give ``solve``'s result (a re-run
 with kept factors ended 0.14 sigma from it on the simulator, where the test allows 0.1).
 
-The camera-model terms (``camera_model.pair_sensitivity``: ``J^T dE``, ``dE^T dE``, ``dE^T e``) move
+The camera-model terms (``camera_model.pair_sensitivities``: ``J^T dE``, ``dE^T dE``, ``dE^T e``) move
 the same way: ``dE^T e' = dE^T e + (J^T dE)^T delta``. Everything else of an update (residuals,
 weights, the noise calibration, the step's cost check) is computed exactly at every update, and
 ``Engine.finish`` is ``solve`` itself. What this changes in the updates, and saves, is measured in
@@ -64,7 +64,7 @@ class PairLinearisation:
     AtA: np.ndarray
     Atb: np.ndarray
     btb: float
-    term: tuple | None = None  # (J^T dE, dE^T dE, dE^T e) of camera_model.pair_sensitivity at x0, () if none
+    term: tuple | None = None  # (J^T dE, dE^T dE, dE^T e) of camera_model.pair_sensitivities at x0, () if none
 
     def moved(self, o, w, scale, sigmas, values, keys, with_correction: bool):
         """(A^T A, A^T b, b^T b, delta, scale / scale0) of this factor moved to ``values``, or None

@@ -117,53 +117,30 @@ def _moved_by(o, thetas) -> list:
     return [j for j, (c, _, _) in enumerate(thetas) if c in cams]
 
 
-def pair_sensitivity(lin, values, keys, Ks, noise, thetas, steps):
-    """One view pair's part of the sensitivities, or None when no parameter moves it: (its keys,
-    J^T dE (D, m), dE^T dE (m, m), dE^T e (m,)) with e its whitened residual, J its whitened
-    Jacobian and dE the change of e per +1 sigma of each parameter (``steps[j][view]``: that sigma
-    on the view's grid), from the pair's factor linearised at ``values``
-    (solver.graph.scene_linearisation: keys, kept observations, W, J, e); many pairs at once:
-    :func:`pair_sensitivities`. The residual ``e_p = g_a - (s_b / s_a) R_ab g_b - t_ab / s_a``
-    (factors.match3d, with ``g = (1 + phi . c) P`` the corrected lifted point) is affine in the lifted points, so a change
-    ``d`` of them changes it by ``(1 + phi_a . c_a) d_a - (s_b / s_a) (1 + phi_b . c_b) R_ab d_b``
-    exactly; :func:`_lift_change` gives ``d``'s one non-zero coordinate per parameter."""
-    k, o, W, J, e = lin
-    js = _moved_by(o, thetas)
-    if not js:
-        return None
-    ca, cb = split_view_id(o.view_a)[0], split_view_id(o.view_b)[0]
-    s_a, s_b = values.atDouble(keys.scale(o.view_a)), values.atDouble(keys.scale(o.view_b))
-    R_ab = values.atPose3(keys.pose(o.view_a)).between(values.atPose3(keys.pose(o.view_b))).rotation().matrix()
-    alpha, beta = np.ones(len(o)), np.full(len(o), s_b / s_a)
-    if noise.depth_correction_sigma > 0:
-        alpha = alpha + o.basis_a @ depth_correction(values, keys, o.view_a)
-        beta = beta * (1 + o.basis_b @ depth_correction(values, keys, o.view_b))
-    # b's changes, rotated into a's frame and whitened (one matrix product for all points)
-    WR = (W.reshape(-1, 3) @ R_ab).reshape(W.shape) if cb in (t[0] for t in thetas) else None
-    dE = np.zeros((len(o), 3, len(thetas)))
-    for j in js:
-        c, p, _ = thetas[j]
-        axis = p % 2
-        if ca == c:
-            dE[:, :, j] += W[:, :, axis] * (alpha * _lift_change(o.pts_a, Ks[o.view_a], p, steps[j][o.view_a]))[:, None]
-        if cb == c:
-            dE[:, :, j] -= WR[:, :, axis] * (beta * _lift_change(o.pts_b, Ks[o.view_b], p, steps[j][o.view_b]))[:, None]
-    dE = dE.reshape(len(e), len(thetas))
-    return k, J.T @ dE, dE.T @ dE, dE.T @ e
-
-
 def pair_sensitivities(lins, values, keys, Ks, noise, thetas, steps) -> list:
-    """``[None if lin is None else pair_sensitivity(lin, ...) for lin in lins]`` (the same numbers
-    to rounding) in far fewer numpy calls, as a pair's arrays are small and the calls' overhead
-    was most of the cost: what depends on a view alone (its pose, scale, depth correction and
-    each parameter's ``-step / focal length``) once per view, R_ab of every pair in one array,
-    and each pair's parameters and both its views at once: one product ``C W^T`` gives, per
-    residual row, W's column of each parameter's moved coordinate and W R_ab's (b's change
-    rotated into a's frame), one multiplication scales them by the lifted points' changes, and
-    dE^T (m, 3n) serves the three products. On rwhe_kuka_1's live update at 25 frames (135
-    pairs, 95k matches; CPU time, median): 53 ms -> 33 ms, of which about 14 ms is J^T dE
-    reading J. Concatenating all pairs' matches into single passes was slower (37-46 ms): its
-    ~10 MB arrays fall out of the cache and page-fault, where one pair's stay in it."""
+    """Each view pair's part of the sensitivities, or None where no parameter moves it (or ``lins``
+    has None): (its keys, J^T dE (D, m), dE^T dE (m, m), dE^T e (m,)), with e its whitened
+    residual, J its whitened Jacobian and dE the change of e per +1 sigma of each parameter
+    (``steps[j][view]``: that sigma on the view's grid), from the pair's factor linearised at
+    ``values`` (``lins``: solver.graph.scene_linearisation's keys, kept observations, W, J, e).
+
+    The residual ``e_p = g_a - (s_b / s_a) R_ab g_b - t_ab / s_a`` (factors.match3d, with
+    ``g = (1 + phi . c) P`` the corrected lifted point) is affine in the lifted points, so a change
+    ``d`` of them changes it by ``(1 + phi_a . c_a) d_a - (s_b / s_a) (1 + phi_b . c_b) R_ab d_b``
+    exactly. Points lifted as ``z K^-1 [u, v, 1]`` (``x = (u - cx) z / fx``) change, to first order,
+    only in x for fx and cx (``-x h / fx``, ``-z h / fx``) and only in y for fy and cy.
+
+    Written for few numpy calls, as a pair's arrays are small and the calls' overhead was most of
+    the cost: what depends on a view alone (its pose, scale, depth correction and each parameter's
+    ``-step / focal length``) once per view, R_ab of every pair in one array, and each pair's
+    parameters and both its views at once: one product ``C W^T`` gives, per residual row, W's
+    column of each parameter's moved coordinate and W R_ab's (b's change rotated into a's frame),
+    one multiplication scales them by the lifted points' changes, and dE^T (m, 3n) serves the
+    three products. tests/test_camera_model_batch.py checks it against the plain pair-by-pair form
+    to 1e-10. On rwhe_kuka_1's live update at 25 frames (135 pairs, 95k matches; CPU time,
+    median): 53 ms (pair by pair) -> 33 ms, of which about 14 ms is J^T dE reading J.
+    Concatenating all pairs' matches into single passes was slower (37-46 ms): its ~10 MB arrays
+    fall out of the cache and page-fault, where one pair's stay in it."""
     out = [None] * len(lins)
     cams = {c for c, _, _ in thetas}
     idx = [i for i, lin in enumerate(lins) if lin is not None
@@ -195,14 +172,6 @@ def pair_sensitivities(lins, values, keys, Ks, noise, thetas, steps) -> list:
     return out
 
 
-def _lift_change(pts, K, p, h):
-    """How points lifted as ``z K^-1 [u, v, 1]`` (so ``x = (u - cx) z / fx``) change when parameter
-    ``p`` of the grid's K moves by ``h`` (first order): only x for fx and cx (-x h / fx, -z h / fx),
-    only y for fy and cy likewise; returns that one coordinate's change (N,)."""
-    axis = p % 2
-    return -(pts[:, axis] if p < 2 else pts[:, 2]) * h / K[axis, axis]
-
-
 def _grid_steps(Ks, cameras, cam, p, h) -> dict:
     """{view: how far parameter ``p`` of its grid K moves} when camera ``cam``'s moves by ``h`` px:
     the frontend grid's K is a scaled and shifted copy of the camera's, so h times the grid's scale."""
@@ -212,7 +181,7 @@ def _grid_steps(Ks, cameras, cam, p, h) -> dict:
 
 def camera_parameters(keys, cameras: dict, Ks) -> tuple[list, list]:
     """(thetas, steps): each (camera, parameter index, 1-sigma px) with a stated sigma, and for
-    each the {view: that sigma on the view's grid} that :func:`pair_sensitivity` takes."""
+    each the {view: that sigma on the view's grid} that :func:`pair_sensitivities` takes."""
     thetas = [(c, p, float(s)) for c in keys.cameras if cameras[c].params_sigma is not None
               for p, s in enumerate(cameras[c].params_sigma) if s > 0]
     return thetas, [_grid_steps(Ks, cameras, c, p, s) for c, p, s in thetas]
@@ -225,7 +194,7 @@ def camera_model_errors(graph, values, keys, observations, weights, Ks, noise, c
     ``observations``, ``weights``, ``Ks``, ``noise``: what the 3D match factors of ``graph``
     were built from (solver.graph.add_scene_factors); ``cameras``: {name: Camera} with
     ``params_sigma`` (px) or None. Given ``system`` ((H, offsets) of ``graph`` at ``values``), it is
-    not linearised again; ``terms``: each pair's :func:`pair_sensitivity` at ``values`` with the parameters of
+    not linearised again; ``terms``: each pair's :func:`pair_sensitivities` at ``values`` with the parameters of
     :func:`camera_parameters`, where the caller linearised the pairs itself. H and the pairs' terms
     must come from one linearisation point: on rwhe_kuka_1's live updates, H from before a
     Gauss-Newton step with terms from after it put the share off by up to 700x (the sum over pairs
