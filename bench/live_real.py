@@ -18,7 +18,10 @@ simulated dataset (its own predictions), the recording is replayed through ``Liv
   any fixed order;
 * the latency of each update (the solver's part; the frontend's feature extraction, pair geometry
   and aggregation and the guidance's scoring reported apart) and all updates against one batch solve;
-* the final live result against batch solve, in sigma per ee axis (the equivalence goal).
+* the final live result against batch solve, in sigma per ee axis (the equivalence goal);
+* ``--empty-pair-cache``: each replay computes its pairs' two-view geometry as a live capture does,
+  instead of reading them from ``--cache`` (the features are still read; the new image's feature
+  extraction is timed apart on five images of each recording).
 
 The linearised and re-solving jackknives are compared by ``bench/jackknife.py``.
 
@@ -37,6 +40,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import sys  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -89,6 +93,23 @@ def prepare(name, work: Path, cache: Path):
     t, c = time.perf_counter(), time.process_time()
     ref = solve(ds, preds, opt)
     return ds_dir, pname, preds, ref, (time.perf_counter() - t, time.process_time() - c)
+
+
+def feature_extraction_s(ds_dir, n=5) -> float | None:
+    """The median wall time of the pairwise frontend's feature extraction on the first ``n`` images of
+    the first camera (what a live update's new image costs before its pairs; None without images)."""
+    from calib3r_graph.frontends.pairwise import PairwiseOptions, extract_features
+
+    ds = load_dataset(ds_dir)
+    cam = next(iter(ds.cameras.values()))
+    if ds.image_path(cam.name, ds.frames[0]) is None:
+        return None
+    times = []
+    for frame in ds.frames[:n]:
+        t = time.perf_counter()
+        extract_features(ds, cam, frame, PairwiseOptions())
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
 
 
 def ee_z(X, ref, C) -> np.ndarray:
@@ -345,7 +366,7 @@ def summarise(runs, batch_s, batch_cpu_s=None, full_sigma=None):
         z = [max(abs(v) for c in r["final_z"].values() for v in c) for r in rs if r["final_z"]]
         got = [n for n in need if n is not None]
         # the same count at other tolerances: where the full result's own sigma is near 3 mm, the
-        # count is decided by a step that lands just outside (live.md, "How far can an order go?")
+        # count is decided by a step that lands just outside (docs/live-notes.md, "How far can an order go?")
         sweep = {}
         for mm in SWEEP_MM:
             n = [frames_to_stay_near(r["steps"], mm) for r in rs]
@@ -434,6 +455,9 @@ def main():
                     help="any of recorded, guided, random, oracle (greedy on the linearised full result), "
                          "sigma_oracle (greedy on the guide's criterion with the true factors)")
     ap.add_argument("--order-file", help="also replay this fixed order: frame ids, whitespace separated")
+    ap.add_argument("--empty-pair-cache", action="store_true",
+                    help="each replay computes its pairs' two-view geometry as a live capture does (a fresh pair "
+                         "cache; the features are still read from --cache, their extraction timed apart)")
     ap.add_argument("--merge", nargs="+", metavar="JSON[:REC,...]",
                     help="replay nothing: merge these live_real.json files (e.g. one recording's orders run in two "
                          "processes), each whole or only the recordings named after a colon, into OUT's "
@@ -445,7 +469,7 @@ def main():
     work, cache, out = work_dirs(args)
     if args.merge:
         return merge(args.merge, out)
-    result = {"command": " ".join(sys.argv), "recordings": {}}
+    result = {"command": " ".join(sys.argv), "recordings": {}, "empty_pair_cache": args.empty_pair_cache}
     for name in args.recordings.split(","):
         if name != "sim" and not (SHARED / name).is_dir():
             print(f"{name}: not in {SHARED}, skipped")
@@ -479,7 +503,12 @@ def main():
                   ("file", [0]))
         for order, seeds in [(o, s) for o, s in orders if o in wanted]:
             for seed in seeds:
-                r = run_order(ds_dir, pname, cache / name, ref, order, seed, fixed.get(order))
+                if args.empty_pair_cache and name != "sim":
+                    with tempfile.TemporaryDirectory(dir=work) as tmp:  # features only: every pair computed live
+                        (Path(tmp) / "features").symlink_to((cache / name / "features").resolve())
+                        r = run_order(ds_dir, pname, Path(tmp), ref, order, seed, fixed.get(order))
+                else:
+                    r = run_order(ds_dir, pname, cache / name, ref, order, seed, fixed.get(order))
                 runs.append(r)
                 print(f"  {order} {seed}: to 3 mm / 0.2 deg after {frames_to_stay_near(r['steps'])} frames, "
                       f"updates {sum(s['latency_s'] for s in r['steps']):.1f} s, final |z| "
@@ -488,7 +517,7 @@ def main():
         full = {c: uncertainty_report(X, ref.covariance[c])["sigma_ee_frame"] for c, X in ref.ee_T_cam.items()}
         full_sigma = [max(s[a] for s in full.values() for a in ("x_mm", "y_mm", "z_mm")),
                       max(s[a] for s in full.values() for a in ("rx_deg", "ry_deg", "rz_deg"))]
-        rec = {"full_sigma_mm_deg": full_sigma,
+        rec = {"full_sigma_mm_deg": full_sigma, "feature_extraction_s": feature_extraction_s(ds_dir),
                "batch_solve_s": batch_s, "batch_solve_cpu_s": batch_cpu_s, "frames": len(load_dataset(ds_dir).frames),
                "summary": summarise(runs, batch_s, batch_cpu_s, full_sigma),
                "runs": runs, "fixed_orders": fixed, "linearised_frames_to_3mm_0.2deg": linear}
@@ -508,7 +537,8 @@ def merge(sources, out: Path):
         path, _, names = src.partition(":")
         files.append((json.loads(Path(path).read_text()), set(names.split(",")) if names else None))
     result = {"command": "; ".join(d["command"] for d, _ in files) +
-              f" (merged: bench/live_real.py --merge {' '.join(sources)})", "recordings": {}}
+              f" (merged: bench/live_real.py --merge {' '.join(sources)})", "recordings": {},
+              "empty_pair_cache": all(d.get("empty_pair_cache") for d, _ in files)}
     for data, only in files:
         for name, rec in data["recordings"].items():
             if only is not None and name not in only:
@@ -554,7 +584,12 @@ def table(result) -> str:
               "before the replays, while the replay's own final step is solve itself under the load the updates ran "
               "under: the other core's load stretches CPU time too). \"With frontend\": the solver's part plus "
               "the pairwise frontend's pair geometry, rescue and aggregation (features from the cache, apart), the "
-              "median over the updates at 20 frames and more:", "",
+              "median over the updates at 20 frames and more" +
+              ("; every replay computed its pairs' two-view geometry itself (an empty pair cache, as a live "
+               "capture)" if result.get("empty_pair_cache") else "; the pairs' two-view geometry read from the "
+               "cache") + ". The new image's feature extraction, apart (median of 5 images, wall): " +
+              (", ".join(f"{n} {r['feature_extraction_s']:.2f} s" for n, r in result["recordings"].items()
+                         if r.get("feature_extraction_s")) or "–") + ":", "",
               "| recording | order | batch solve CPU (s) | median update CPU (s) | all updates incl. final / batch (CPU) | "
               "all updates / the replay's own final solve (CPU) | median guidance (s, wall) | "
               "with frontend, wall (s) | with frontend, CPU (s) |",

@@ -10,7 +10,7 @@ more); the iterations are spread over the updates, each starting where the last 
 does not lower the cost falls back to LM to convergence; the first solve (cold) runs ``solve``'s
 schedule, LM to convergence from the initialisation in its first round and one Gauss-Newton step in
 each later one, as the few-pose re-runs below (LM in every round cost 0.6 CPU s more at rwhe_kuka_1's
-cold start, docs/live.md). Why not iSAM2 (measured in docs/live.md): every update also changes the
+cold start, docs/live-notes.md). Why not iSAM2 (measured in docs/live.md): every update also changes the
 weights of the *old* scene factors (robust re-weighting and the noise calibration rescale all of them) and
 the pairwise frontend re-aggregates old views' depths when a new pair arrives, so iSAM2 would
 have to remove and re-add most factors at every frame. What it saves, relinearising only what
@@ -99,7 +99,7 @@ MOVE_SIGMAS = 3.0
 # result (Engine._update). Consistent data move an n-pose estimate by about its sigma / sqrt(n) per
 # new pose (Mahalanobis over 6 axes: sqrt(chi2_6 / n), 1.22 at its 99.9 % quantile and n = 15), so a
 # larger move says the step's weights, lagged by one update and with the new pairs' RANSAC inliers at
-# full weight, belong to another solution. Measured on rwhe_kuka_2's guided orders (docs/live.md): the
+# full weight, belong to another solution. Measured on rwhe_kuka_2's guided orders (docs/live-notes.md): the
 # update at 27 frames 2.52 and 2.38 sigma from solve on the same frames -> 0.62 and 0.61, one or two
 # extra steps in 14 updates.
 EXTRA_STEP_SIGMAS = 1.5

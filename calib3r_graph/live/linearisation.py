@@ -38,7 +38,7 @@ The camera-model terms (``camera_model.pair_sensitivities``: ``J^T dE``, ``dE^T 
 the same way: ``dE^T e' = dE^T e + (J^T dE)^T delta``. Everything else of an update (residuals,
 weights, the noise calibration, the step's cost check) is computed exactly at every update, and
 ``Engine.finish`` is ``solve`` itself. What this changes in the updates, and saves, is measured in
-docs/live.md.
+docs/live-notes.md.
 """
 
 from dataclasses import dataclass

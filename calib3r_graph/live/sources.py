@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 # (aggregate's ``regrow``), so each view is aggregated about log2(its pairs) times in a session, not
 # once for every frame that pairs with it (each new frame pairs with about 15 earlier views, and the
 # engine then rebuilt the observations, whitening and terms of every pair of each). Measured
-# (docs/live.md, "What an update recomputes"): 1-7 % fewer matches in the predictions at 9-30 frames
+# (docs/live-notes.md, "What an update recomputes"): 1-7 % fewer matches in the predictions at 9-30 frames
 # of rwhe_kuka_1 and rwhe_kuka_2 (a new pair keeps its matches where the old view already had depth);
 # rwhe_kuka_1's median update at 20-30 frames 0.69-0.74 -> 0.49-0.54 CPU s in the solver and
 # 1.47-1.51 -> 0.94-0.99 s wall with the frontend; the same frames to 3 mm and 3-sigma cover there, and

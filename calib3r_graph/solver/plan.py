@@ -139,7 +139,7 @@ def matched_view_angle_deg(sol, axes=None) -> float:
 
     A candidate's scene factor is predicted only with views within it (:func:`candidate_factors`):
     on tabb_ds1 the verified pairs span at most 13.8 deg (median 5, 427 pairs), and the guide's
-    picks 16-33 deg from every view so far were predicted to match but matched nothing (docs/live.md)."""
+    picks 16-33 deg from every view so far were predicted to match but matched nothing (docs/live-notes.md)."""
     axes = view_axes(sol) if axes is None else axes
     angles = [axis_angle_deg(axes[o.view_a], axes[o.view_b]) for o in sol.observations]
     return max(angles) if angles else 180.0
