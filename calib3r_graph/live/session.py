@@ -77,7 +77,9 @@ class Update:
         sig = f"sigma {mm:.2f} mm {deg:.3f} deg" if np.isfinite(mm) else "sigma -"
         state = "DONE" if self.done else ("FLOOR" if self.floor else "")
         skipped = "".join(f"  skipped {f}: {r}" for f, r in self.skipped)
-        return (f"[{self.step:3d}] frames {len(self.frames):3d}  {sig}  {self.latency_s:.2f} s"
+        # the time the frame took to answer: its features and pairs, then the solver's update
+        wait = f"{self.latency_s + sum(self.frontend_s.values()):.2f} s (solver {self.latency_s:.2f} s)"
+        return (f"[{self.step:3d}] frames {len(self.frames):3d}  {sig}  {wait}"
                 f"{nxt}  {state} {self.message}{skipped}").rstrip()
 
     def to_json(self) -> dict:
