@@ -394,8 +394,9 @@ def test_live_pairing_picks_each_new_views_best_partners_and_ends_at_the_batch_s
 def test_a_view_whose_pairs_are_all_cut_leaves_the_update_not_the_session(simulated, monkeypatch):
     """A view that no pair with three weighted matches determines (the re-weighting cut all of its
     pairs) would leave the information singular: as in ``solve`` it leaves that update
-    (engine._Context.drop_weak), is named in views_dropped, and the calibration goes on."""
+    (update.UpdateContext.drop_weak), is named in views_dropped, and the calibration goes on."""
     from calib3r_graph.live import engine as live_engine
+    from calib3r_graph.live import update as live_update
 
     root = simulated(seed=7, frames=12, cameras=1, matches_per_pair=200)
     weak = "cam0/0004"
@@ -406,6 +407,7 @@ def test_a_view_whose_pairs_are_all_cut_leaves_the_update_not_the_session(simula
         return [x * 0 if weak in (o.view_a, o.view_b) else x for o, x in zip(observations, w)]
 
     monkeypatch.setattr(live_engine, "robust_weights", cut)
+    monkeypatch.setattr(live_update, "robust_weights", cut)  # (the warm start's weights)
     session = LiveSession(root, predictions="sim", guide=False)
     ups = [session.add_frame(f) for f in session.poses_known]
     # before: from the first calibration on, every update with the view failed as singular

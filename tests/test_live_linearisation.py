@@ -1,8 +1,8 @@
-"""A live update linearises its 3D match factors by hand (live/engine.py ``_Context.linear_system``,
+"""A live update linearises its 3D match factors by hand (live/update.py ``UpdateContext.linear_system``,
 graph.scene_linearisation), so that one Jacobian per pair serves the linear system and the camera
 model's sensitivities. Both must be what GTSAM's linearisation and camera_model's own pass give,
 at every update's linearisation point (non-zero residuals: real matches, moving estimates). The
-step's cost check (``_Context.error``, from the residuals the update keeps) must be GTSAM's graph
+step's cost check (``UpdateContext.error``, from the residuals the update keeps) must be GTSAM's graph
 error."""
 
 import shutil
@@ -13,6 +13,7 @@ import yaml
 
 from calib3r_graph.live import LiveSession
 from calib3r_graph.live import engine as live_engine
+from calib3r_graph.live import update as live_update
 from calib3r_graph.live import linearisation as live_linearisation
 from calib3r_graph.solver.camera_model import camera_model_errors
 from calib3r_graph.solver.graph import point_sqrt_info
@@ -27,7 +28,7 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
     (root / "dataset.yaml").write_text(yaml.safe_dump(meta))
 
     systems, shares = [], []
-    hand = live_engine._Context.linear_system
+    hand = live_update.UpdateContext.linear_system
 
     def compared(ctx, values, weights, calib, camera=True):
         H, offsets, factors = hand(ctx, values, weights, calib, camera)
@@ -56,7 +57,7 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
         return H, offsets, factors
 
     errors = []
-    own_error = live_engine._Context.error
+    own_error = live_update.UpdateContext.error
 
     def compared_error(ctx, values, at, weights, calib):
         e = own_error(ctx, values, at, weights, calib)
@@ -69,9 +70,9 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
     # every pair linearised anew (a kept linearisation is reused only where nothing moved: the next test)
     monkeypatch.setattr(live_linearisation, "DRIFT_SIGMAS", 0.0)
     monkeypatch.setattr(live_linearisation, "WEIGHT_TOL", 0.0)
-    monkeypatch.setattr(live_engine, "WHITENING_TOL", 0.0)  # and every whitening computed anew
-    monkeypatch.setattr(live_engine._Context, "linear_system", compared)
-    monkeypatch.setattr(live_engine._Context, "error", compared_error)
+    monkeypatch.setattr(live_update, "WHITENING_TOL", 0.0)  # and every whitening computed anew
+    monkeypatch.setattr(live_update.UpdateContext, "linear_system", compared)
+    monkeypatch.setattr(live_update.UpdateContext, "error", compared_error)
     session = LiveSession(root, predictions="sim", guide=False)
     for f in session.poses_known:
         session.add_frame(f)
@@ -85,20 +86,20 @@ def test_hand_linearisation_is_gtsams_and_serves_the_camera_model(simulated, tmp
 
 
 def test_an_updates_graph_is_built_where_asked_and_is_the_one_its_step_linearised(simulated, monkeypatch):
-    """An update keeps what its graph is built from (``_Context.deferred_graph``): the update itself
+    """An update keeps what its graph is built from (``UpdateContext.deferred_graph``): the update itself
     needs only the robot factors; the guidance's first use of ``sol.graph`` builds the whole graph,
     the one the update's last step linearised (the same factors, the same error)."""
     last = {}
-    hand = live_engine._Context.linear_system
+    hand = live_update.UpdateContext.linear_system
 
     def kept(ctx, values, weights, calib, camera=True):
         if camera:  # the system a covariance is computed from
             last["args"] = (ctx, values, weights, calib)
         return hand(ctx, values, weights, calib, camera)
 
-    monkeypatch.setattr(live_engine._Context, "linear_system", kept)
+    monkeypatch.setattr(live_update.UpdateContext, "linear_system", kept)
     # (a kept whitening is the one of a nearby point, so a graph built again later may take another)
-    monkeypatch.setattr(live_engine, "WHITENING_TOL", 0.0)
+    monkeypatch.setattr(live_update, "WHITENING_TOL", 0.0)
     session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
                           guide=False)
     checked = []
@@ -128,8 +129,8 @@ def test_a_pairs_point_covariances_are_computed_once_while_its_matches_and_sigma
     import dataclasses
 
     calls = []
-    own = live_engine.point_covariances
-    monkeypatch.setattr(live_engine, "point_covariances",
+    own = live_update.point_covariances
+    monkeypatch.setattr(live_update, "point_covariances",
                         lambda o, *a: calls.append((o.view_a, o.view_b)) or own(o, *a))
     session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
                           guide=False)
@@ -172,9 +173,9 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
         if exact:
             monkeypatch.setattr(linearisation, "DRIFT_SIGMAS", 0.0)
             monkeypatch.setattr(linearisation, "WEIGHT_TOL", 0.0)
-            monkeypatch.setattr(live_engine, "WHITENING_TOL", 0.0)
-        counts, own = [], live_engine.scene_linearisation
-        monkeypatch.setattr(live_engine, "scene_linearisation", lambda *a: counts.append(1) or own(*a))
+            monkeypatch.setattr(live_update, "WHITENING_TOL", 0.0)
+        counts, own = [], live_update.scene_linearisation
+        monkeypatch.setattr(live_update, "scene_linearisation", lambda *a: counts.append(1) or own(*a))
         session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
                               guide=False)
         out = []

@@ -1,7 +1,7 @@
 """A view pair's linearised 3D match factor, kept across live updates while it still holds.
 
 What GTSAM's iSAM2 calls fluid relinearisation, for the live engine's hand-built linear system
-(``engine._Context.linear_system``). A pair's factor depends only on its two views' relative pose,
+(``update.UpdateContext.linear_system``). A pair's factor depends only on its two views' relative pose,
 depth scales and corrections, and its weights. Between two updates at 15-30 poses the old pairs'
 relative poses move by 1-4e-4 rad and 5e-4-1e-3 of their baseline, their depth scales by
 1e-4-8e-4 (rwhe_kuka_1, a random order, medians per update), so their Jacobians are the same to a
@@ -29,7 +29,7 @@ pair's nonlinearity its motion since ``x0`` brings: after a large step the facto
 remainder the kept one cannot (up to 0.2 sigma of a view's variable on the simulator's replay), which
 the pair's next relinearisation takes up.
 
-Only an update's first step reuses (``engine._Context.fresh``): a later step of the same update, the
+Only an update's first step reuses (``update.UpdateContext.fresh``): a later step of the same update, the
 re-weighted second step or a re-run of ``solve``'s schedule, follows a large move, where a factor
 linearised before it predicts least well, and the schedule is to give ``solve``'s result (a re-run
 with kept factors ended 0.14 sigma from it on the simulator, where the test allows 0.1).
