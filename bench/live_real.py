@@ -144,7 +144,7 @@ def run_order(ds_dir, pname, cache, ref, order, seed, fixed=None):
         steps.append(row)
 
     t = time.perf_counter()
-    ups = replay(session, fixed if fixed is not None else order, seed, on_update=record)
+    replay(session, fixed if fixed is not None else order, seed, on_update=record)
     wall = time.perf_counter() - t
     final = {}
     if session.sol is not None:

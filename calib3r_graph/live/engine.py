@@ -58,7 +58,6 @@ leave-one-pose-out jackknife.
 """
 
 import dataclasses
-import logging
 import time
 from dataclasses import dataclass, field
 
@@ -74,7 +73,6 @@ from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions, robust_weights
 
-log = logging.getLogger(__name__)
 
 # A total sigma beyond these is no calibration yet (a flange camera's mount offset is about 0.1 m; a
 # 10 degree sigma is no rotation estimate): the update says "not observable yet" and the next starts
