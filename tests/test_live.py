@@ -402,8 +402,8 @@ def test_a_view_whose_pairs_are_all_cut_leaves_the_update_not_the_session(simula
     weak = "cam0/0004"
     real = live_engine.robust_weights
 
-    def cut(observations, residuals, whitening, conf):  # the real weights, the weak view's pairs cut
-        w = real(observations, residuals, whitening, conf)
+    def cut(observations, residuals, whitening, conf, **kw):  # the real weights, the weak view's pairs cut
+        w = real(observations, residuals, whitening, conf, **kw)
         return [x * 0 if weak in (o.view_a, o.view_b) else x for o, x in zip(observations, w)]
 
     monkeypatch.setattr(live_engine, "robust_weights", cut)

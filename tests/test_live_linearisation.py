@@ -236,3 +236,38 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
 
 def gtsam_pose(T):
     return gtsam.Pose3(np.asarray(T, float))
+
+
+def test_the_whitened_residuals_kept_per_pair_give_the_weights_and_noise_calibration_bit_for_bit(simulated, monkeypatch):
+    """An update whitens each pair's residuals once a point (``UpdateContext.whitened``) and hands them
+    to ``robust_weights`` and ``noise_calibration``, which otherwise whiten them themselves: at every
+    call of a replay, both with and without them give the same numbers, bit for bit."""
+    from calib3r_graph.solver import solve as solve_module
+    from calib3r_graph.solver import uncertainty
+
+    calls = {"weights": 0, "calibration": 0, "given": 0}
+    real_weights, real_calibration = solve_module.robust_weights, uncertainty.noise_calibration
+
+    def weights(observations, residuals, whitening, conf, whitened=None):
+        got = real_weights(observations, residuals, whitening, conf, whitened=whitened)
+        if whitened is not None:
+            calls["given"] += 1
+            assert all(np.array_equal(w, np.einsum("nij,nj->ni", W, r)) for w, W, r in zip(whitened, whitening, residuals))
+        assert all(np.array_equal(a, b) for a, b in zip(got, real_weights(observations, residuals, whitening, conf)))
+        calls["weights"] += 1
+        return got
+
+    def calibration(observations, residuals, whitening, w, grid, whitened=None):
+        got = real_calibration(observations, residuals, whitening, w, grid, whitened=whitened)
+        assert got == real_calibration(observations, residuals, whitening, w, grid)
+        calls["calibration"] += whitened is not None
+        return got
+
+    for module in (live_engine, live_update):
+        monkeypatch.setattr(module, "robust_weights", weights)
+    monkeypatch.setattr(live_update, "noise_calibration", calibration)
+    session = LiveSession(simulated(seed=3, frames=12, cameras=1, matches_per_pair=200), predictions="sim",
+                          guide=False)
+    ups = [session.add_frame(f) for f in session.poses_known]
+    assert sum(bool(u.ee_T_cam) for u in ups) >= 6
+    assert calls["given"] >= 10 and calls["weights"] >= calls["given"] and calls["calibration"] >= 6, calls

@@ -220,7 +220,7 @@ class Engine:
                 values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if not few and EXTRA_STEP_SIGMAS and self._move(state, values, keys) > EXTRA_STEP_SIGMAS:
                 self.extra_steps += 1
-                weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
+                weights = robust_weights(ctx.observations, *ctx.terms(values), conf, whitened=ctx.whitened(values))
                 conf, weights, inliers = ctx.drop_weak(values, conf, weights, inliers)
                 for k in [k for k in start.keys() if not values.exists(k)]:  # the views it left out
                     start.erase(k)
@@ -242,7 +242,7 @@ class Engine:
         # of the pairs whose views did not move is this solution, so its warm_weights reuse them)
         t = time.perf_counter()
         res, W = ctx.terms(values)
-        new_weights = robust_weights(ctx.observations, res, W, conf)
+        new_weights = robust_weights(ctx.observations, res, W, conf, whitened=ctx.whitened(values))
         next_calib = ctx.calibrate(values, new_weights, res, W) if self.opt.noise_calibration else Calibration()
         live = {(o.view_a, o.view_b) for o in ctx.observations}
         for cache in (self._terms, self._covariances, self._kept, self._whitening):
@@ -271,7 +271,7 @@ class Engine:
             conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
             values = (first if rnd == 0 and first else ctx.step)(values, weights, calib, history)
             if rnd < self.opt.irls_rounds:
-                weights = robust_weights(ctx.observations, *ctx.terms(values), conf)
+                weights = robust_weights(ctx.observations, *ctx.terms(values), conf, whitened=ctx.whitened(values))
         conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
         calib = ctx.calibrate(values, weights, *ctx.terms(values)) if self.opt.noise_calibration else Calibration()
         return values, conf, weights, sims, calib

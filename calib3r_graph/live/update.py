@@ -117,8 +117,26 @@ class UpdateContext:
             for i, r, w in zip(todo, match_residuals(sub, values, self.keys), self.nominal_whitening(values, sub)):
                 o = obs[i]
                 res[i], W[i] = r, w
-                self.cache[(o.view_a, o.view_b)] = (o, of(o.view_a), of(o.view_b), noise, r, w)
+                self.cache[(o.view_a, o.view_b)] = [o, of(o.view_a), of(o.view_b), noise, r, w, None]
         return res, W
+
+    def whitened(self, values, observations=None) -> list:
+        """Each pair's whitened residual ``W r`` (n, 3) of :meth:`terms` at ``values``, computed once a
+        pair and point and kept with them: ``robust_weights``, the noise calibration and the step's
+        cost check all read it (each whitened the residuals itself, 5-6 passes over every match an
+        update; the same numbers)."""
+        obs = self.observations if observations is None else observations
+        res, W = self.terms(values, obs)
+        out = []
+        for o, r, w in zip(obs, res, W):
+            c = self.cache[(o.view_a, o.view_b)]
+            if c[4] is not r or c[5] is not w:  # (not what terms returned: cannot happen, computed anyway)
+                out.append(np.einsum("nij,nj->ni", w, r))
+                continue
+            if c[6] is None:
+                c[6] = np.einsum("nij,nj->ni", w, r)
+            out.append(c[6])
+        return out
 
     def values(self, state) -> gtsam.Values:
         keys, values = self.keys, gtsam.Values()
@@ -163,7 +181,8 @@ class UpdateContext:
         if old:
             obs = [self.observations[i] for i in old]
             res, W = self.terms(values, obs)
-            for i, w in zip(old, robust_weights(obs, res, W, [conf[i] for i in old])):
+            for i, w in zip(old, robust_weights(obs, res, W, [conf[i] for i in old],
+                                                whitened=self.whitened(values, obs))):
                 out[i] = w
         return out
 
@@ -313,11 +332,14 @@ class UpdateContext:
         graph's error was a second pass over every match, with a GTSAM graph built for each round)."""
         scale = 1.0 / (calib.sigma0_sq * calib.kappa)
         e = self.graph(at, weights, calib, scene=False).error(values)  # (its robot noise: at at's ee_T_cam)
-        for w, W, r in zip(weights, self.terms(at)[1], self.terms(values)[0]):
+        W_at, (r, W) = self.terms(at)[1], self.terms(values)
+        white = self.whitened(values)  # (the next weights read them too)
+        for i, w in enumerate(weights):
             keep = w > 0
             if keep.sum() < MIN_FACTOR_MATCHES:  # no factor (add_scene_factors)
                 continue
-            wr = np.einsum("nij,nj->ni", W[keep], r[keep])
+            # at's whitening, kept to values where the pair's hardly moved (nominal_whitening)
+            wr = white[i][keep] if W_at[i] is W[i] else np.einsum("nij,nj->ni", W_at[i][keep], r[i][keep])
             e += 0.5 * scale * float(w[keep] @ np.einsum("ni,ni->n", wr, wr))
         return e
 
@@ -366,7 +388,8 @@ class UpdateContext:
         """solve's noise calibration at ``values`` with the robust ``weights`` (``residuals`` and
         ``whitening``: :meth:`terms` at ``values``)."""
         grid = {v: self.preds.views[v].depth.shape[::-1] for v in self.views}
-        sigma0_sq, kappa = noise_calibration(self.observations, residuals, whitening, weights, grid)
+        sigma0_sq, kappa = noise_calibration(self.observations, residuals, whitening, weights, grid,
+                                             whitened=self.whitened(values))
         chi2, n_frames = robot_chi2(self.keys, self.views, self.base_T_ee, values, self.opt.noise)
         robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
         if not np.isfinite(robot_factor):

@@ -100,13 +100,14 @@ def levenberg_marquardt(graph, values, max_iterations, label, progress=True):
     return result, opt.iterations(), graph.error(values), graph.error(result)
 
 
-def robust_weights(observations, residuals, sqrt_infos, conf):
+def robust_weights(observations, residuals, sqrt_infos, conf, whitened=None):
     """IRLS weights: Huber on each match's Mahalanobis distance, 0 beyond the 99.9 % chi2(3) cut.
 
     The residual scale is estimated robustly (median) over all matches, so the cut
-    adapts when the nominal noise model is off.
+    adapts when the nominal noise model is off. ``whitened``: each pair's ``W e`` if the caller
+    has it already (the live engine keeps it per pair and point).
     """
-    r2 = [np.einsum("nij,nj->ni", W, e) for W, e in zip(sqrt_infos, residuals)]
+    r2 = [np.einsum("nij,nj->ni", W, e) for W, e in zip(sqrt_infos, residuals)] if whitened is None else whitened
     r2 = [np.sum(x * x, axis=1) for x in r2]
     sigma2 = np.median(np.concatenate(r2)) / CHI2_3_MEDIAN
     out = []

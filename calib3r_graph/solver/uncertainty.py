@@ -24,19 +24,24 @@ import numpy as np
 from calib3r_graph.io.predictions import split_view_id
 
 
-def noise_calibration(observations, residuals, unit_sqrt_info, weights, grid_size, cells=(6, 8)):
+def noise_calibration(observations, residuals, unit_sqrt_info, weights, grid_size, cells=(6, 8), whitened=None):
     """(sigma0^2, kappa) of the scene factors from residuals at the solution.
 
     residuals: per pair (N, 3) unwhitened; unit_sqrt_info: per pair (N, 3, 3) nominal
     whitening; weights: per pair (N,) confidence x robust weight (0 = not used);
-    grid_size: view -> (width, height) of the frontend grid.
+    grid_size: view -> (width, height) of the frontend grid; whitened: per pair ``W e`` (N, 3)
+    if the caller has it already (the live engine).
     """
     if not observations:
         return 0.0, 1.0
     # All pairs at once: their matches concatenated, each match's cell numbered within its pair's
     # (the sums per cell are those of the pairs one by one, in the same order)
-    W, e, w = np.concatenate(unit_sqrt_info), np.concatenate(residuals), np.concatenate(weights)
-    white = np.einsum("nij,nj->ni", W, e) * np.sqrt(w)[:, None]  # (as solve.robust_weights whitens)
+    w = np.concatenate(weights)
+    if whitened is None:
+        white = np.einsum("nij,nj->ni", np.concatenate(unit_sqrt_info), np.concatenate(residuals))
+    else:
+        white = np.concatenate(whitened)
+    white = white * np.sqrt(w)[:, None]  # (as solve.robust_weights whitens)
     used = w > 0
     rows = 3 * int(used.sum())
     sigma0_sq = float((white[used] ** 2).sum() / max(rows, 1))
