@@ -175,7 +175,7 @@ class Engine:
         keys = Keys(views, cameras)
         Ks = {v: preds.views[v].K for v in views}
         ctx = UpdateContext(self.ds, base_T_ee, preds, observations, keys, Ks, views, cameras,
-                       self.opt, self._terms, self._covariances, self._kept, self._whitening)
+                            self.opt, self._terms, self._covariances, self._kept, self._whitening)
         values = ctx.values(state)
         conf = [o.weight for o in observations]
         t = time.perf_counter()

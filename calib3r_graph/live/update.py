@@ -437,16 +437,16 @@ class UpdateContext:
                  "systematic_error_gain": {"mm_per_mm": gain, "ee_direction": axis.tolist()},
                  "systematic": {c: systematic[c].to_json() for c in cameras}}
         sol = LiveSolution(ee_T_cam={c: values.atPose3(keys.hand_eye(c)) for c in cameras}, covariance=covariance,
-                       covariance_model=covariance_model, systematic=systematic, metric_scale=metric,
-                       base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
-                       depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
-                       depth_correction={v: depth_correction(values, keys, v) for v in views},
-                       init_ee_T_cam={}, stats=stats,
-                       views_dropped=[{"view": v, "reason": r} for v, r in self.dropped.items()],
-                       diagnostics=motion_diagnostics(self.base_T_ee, used_frames),
-                       graph=graph if build is None else None, values=values,
-                       keys=keys, observations=self.observations,
-                       scene_weight_scale=1.0 / (calib.sigma0_sq * calib.kappa))
+                           covariance_model=covariance_model, systematic=systematic, metric_scale=metric,
+                           base_T_cam={v: values.atPose3(keys.pose(v)) for v in views},
+                           depth_scale={v: values.atDouble(keys.scale(v)) for v in views},
+                           depth_correction={v: depth_correction(values, keys, v) for v in views},
+                           init_ee_T_cam={}, stats=stats,
+                           views_dropped=[{"view": v, "reason": r} for v, r in self.dropped.items()],
+                           diagnostics=motion_diagnostics(self.base_T_ee, used_frames),
+                           graph=graph if build is None else None, values=values,
+                           keys=keys, observations=self.observations,
+                           scene_weight_scale=1.0 / (calib.sigma0_sq * calib.kappa))
         sol.build_graph, sol.robot_graph = build, graph if build is not None else None
         if wanted(self.opt.jackknife, len(used_frames)):
             jk, suspect = linearised_jackknife(sol, system)
