@@ -395,19 +395,17 @@ def test_a_view_whose_pairs_are_all_cut_leaves_the_update_not_the_session(simula
     """A view that no pair with three weighted matches determines (the re-weighting cut all of its
     pairs) would leave the information singular: as in ``solve`` it leaves that update
     (update.UpdateContext.drop_weak), is named in views_dropped, and the calibration goes on."""
-    from calib3r_graph.live import engine as live_engine
     from calib3r_graph.live import update as live_update
 
     root = simulated(seed=7, frames=12, cameras=1, matches_per_pair=200)
     weak = "cam0/0004"
-    real = live_engine.robust_weights
+    real = live_update.robust_weights
 
     def cut(observations, residuals, whitening, conf, **kw):  # the real weights, the weak view's pairs cut
         w = real(observations, residuals, whitening, conf, **kw)
         return [x * 0 if weak in (o.view_a, o.view_b) else x for o, x in zip(observations, w)]
 
-    monkeypatch.setattr(live_engine, "robust_weights", cut)
-    monkeypatch.setattr(live_update, "robust_weights", cut)  # (the warm start's weights)
+    monkeypatch.setattr(live_update, "robust_weights", cut)  # (every update's weights: UpdateContext.irls_weights)
     session = LiveSession(root, predictions="sim", guide=False)
     ups = [session.add_frame(f) for f in session.poses_known]
     # before: from the first calibration on, every update with the view failed as singular

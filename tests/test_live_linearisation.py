@@ -263,8 +263,7 @@ def test_the_whitened_residuals_kept_per_pair_give_the_weights_and_noise_calibra
         calls["calibration"] += whitened is not None
         return got
 
-    for module in (live_engine, live_update):
-        monkeypatch.setattr(module, "robust_weights", weights)
+    monkeypatch.setattr(live_update, "robust_weights", weights)
     monkeypatch.setattr(live_update, "noise_calibration", calibration)
     session = LiveSession(simulated(seed=3, frames=12, cameras=1, matches_per_pair=200), predictions="sim",
                           guide=False)

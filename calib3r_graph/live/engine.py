@@ -71,7 +71,7 @@ from calib3r_graph.solver.graph import Keys
 from calib3r_graph.solver.init import initialise, pairwise_sim3
 from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW
 from calib3r_graph.solver.observations import build_observations
-from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions, robust_weights
+from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions
 
 
 # A total sigma beyond these is no calibration yet (a flange camera's mount offset is about 0.1 m; a
@@ -220,7 +220,7 @@ class Engine:
                 values, system, graph = self._last_step(ctx, values, weights, calib, history)
             if not few and EXTRA_STEP_SIGMAS and self._move(state, values, keys) > EXTRA_STEP_SIGMAS:
                 self.extra_steps += 1
-                weights = robust_weights(ctx.observations, *ctx.terms(values), conf, whitened=ctx.whitened(values))
+                weights = ctx.irls_weights(values, conf)
                 conf, weights, inliers = ctx.drop_weak(values, conf, weights, inliers)
                 for k in [k for k in start.keys() if not values.exists(k)]:  # the views it left out
                     start.erase(k)
@@ -241,9 +241,8 @@ class Engine:
         # (the residuals and whitening at this solution are kept per pair: the next update's warm start
         # of the pairs whose views did not move is this solution, so its warm_weights reuse them)
         t = time.perf_counter()
-        res, W = ctx.terms(values)
-        new_weights = robust_weights(ctx.observations, res, W, conf, whitened=ctx.whitened(values))
-        next_calib = ctx.calibrate(values, new_weights, res, W) if self.opt.noise_calibration else Calibration()
+        new_weights = ctx.irls_weights(values, conf)
+        next_calib = ctx.calibrate(values, new_weights) if self.opt.noise_calibration else Calibration()
         live = {(o.view_a, o.view_b) for o in ctx.observations}
         for cache in (self._terms, self._covariances, self._kept, self._whitening):
             for k in [k for k in cache if k not in live]:
@@ -271,9 +270,9 @@ class Engine:
             conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
             values = (first if rnd == 0 and first else ctx.step)(values, weights, calib, history)
             if rnd < self.opt.irls_rounds:
-                weights = robust_weights(ctx.observations, *ctx.terms(values), conf, whitened=ctx.whitened(values))
+                weights = ctx.irls_weights(values, conf)
         conf, weights, sims = ctx.drop_weak(values, conf, weights, sims)
-        calib = ctx.calibrate(values, weights, *ctx.terms(values)) if self.opt.noise_calibration else Calibration()
+        calib = ctx.calibrate(values, weights) if self.opt.noise_calibration else Calibration()
         return values, conf, weights, sims, calib
 
     def _last_step(self, ctx, values, weights, calib, history):
@@ -373,7 +372,7 @@ class Engine:
             state.correction[v] = old.correction.get(v)
         inliers = [None] * len(observations)
         # RANSAC only for the pairs with a view not placed yet; the others get IRLS weights from their
-        # residuals at the warm start (UpdateContext.carried_weight)
+        # residuals at the warm start (UpdateContext.warm_weights)
         new = [i for i, o in enumerate(observations)
                if o.view_a not in state.base_T_cam or o.view_b not in state.base_T_cam]
         for i, sim in zip(new, pairwise_sim3([observations[i] for i in new])):

@@ -120,23 +120,27 @@ class UpdateContext:
                 self.cache[(o.view_a, o.view_b)] = [o, of(o.view_a), of(o.view_b), noise, r, w, None]
         return res, W
 
-    def whitened(self, values, observations=None) -> list:
-        """Each pair's whitened residual ``W r`` (n, 3) of :meth:`terms` at ``values``, computed once a
-        pair and point and kept with them: ``robust_weights``, the noise calibration and the step's
-        cost check all read it (each whitened the residuals itself, 5-6 passes over every match an
-        update; the same numbers)."""
+    def whitened(self, values, observations=None) -> tuple[list, list, list]:
+        """(match residuals, nominal whitening, whitened residuals ``W r`` (n, 3)) per pair at
+        ``values``: :meth:`terms`, and ``W r`` computed once a pair and point and kept with them.
+        The weights (:meth:`irls_weights`), the noise calibration and the step's cost check all read
+        it (each whitened the residuals itself, 5-6 passes over every match an update; the same
+        numbers)."""
         obs = self.observations if observations is None else observations
         res, W = self.terms(values, obs)
-        out = []
-        for o, r, w in zip(obs, res, W):
-            c = self.cache[(o.view_a, o.view_b)]
-            if c[4] is not r or c[5] is not w:  # (not what terms returned: cannot happen, computed anyway)
-                out.append(np.einsum("nij,nj->ni", w, r))
-                continue
+        white = []
+        for o in obs:
+            c = self.cache[(o.view_a, o.view_b)]  # (what terms returned: c[4], c[5])
             if c[6] is None:
-                c[6] = np.einsum("nij,nj->ni", w, r)
-            out.append(c[6])
-        return out
+                c[6] = np.einsum("nij,nj->ni", c[5], c[4])
+            white.append(c[6])
+        return res, W, white
+
+    def irls_weights(self, values, conf, observations=None) -> list:
+        """solve.robust_weights from the residuals at ``values``."""
+        obs = self.observations if observations is None else observations
+        res, W, white = self.whitened(values, obs)
+        return robust_weights(obs, res, W, conf, whitened=white)
 
     def values(self, state) -> gtsam.Values:
         keys, values = self.keys, gtsam.Values()
@@ -180,9 +184,7 @@ class UpdateContext:
         out = [None if m is None else c * m[3] for c, m in zip(conf, sims)]
         if old:
             obs = [self.observations[i] for i in old]
-            res, W = self.terms(values, obs)
-            for i, w in zip(old, robust_weights(obs, res, W, [conf[i] for i in old],
-                                                whitened=self.whitened(values, obs))):
+            for i, w in zip(old, self.irls_weights(values, [conf[i] for i in old], obs)):
                 out[i] = w
         return out
 
@@ -332,8 +334,7 @@ class UpdateContext:
         graph's error was a second pass over every match, with a GTSAM graph built for each round)."""
         scale = 1.0 / (calib.sigma0_sq * calib.kappa)
         e = self.graph(at, weights, calib, scene=False).error(values)  # (its robot noise: at at's ee_T_cam)
-        W_at, (r, W) = self.terms(at)[1], self.terms(values)
-        white = self.whitened(values)  # (the next weights read them too)
+        W_at, (r, W, white) = self.terms(at)[1], self.whitened(values)  # (the next weights read them too)
         for i, w in enumerate(weights):
             keep = w > 0
             if keep.sum() < MIN_FACTOR_MATCHES:  # no factor (add_scene_factors)
@@ -384,12 +385,11 @@ class UpdateContext:
             out.append(W)
         return out
 
-    def calibrate(self, values, weights, residuals, whitening) -> Calibration:
-        """solve's noise calibration at ``values`` with the robust ``weights`` (``residuals`` and
-        ``whitening``: :meth:`terms` at ``values``)."""
+    def calibrate(self, values, weights) -> Calibration:
+        """solve's noise calibration at ``values`` with the robust ``weights``."""
         grid = {v: self.preds.views[v].depth.shape[::-1] for v in self.views}
-        sigma0_sq, kappa = noise_calibration(self.observations, residuals, whitening, weights, grid,
-                                             whitened=self.whitened(values))
+        residuals, whitening, white = self.whitened(values)
+        sigma0_sq, kappa = noise_calibration(self.observations, residuals, whitening, weights, grid, whitened=white)
         chi2, n_frames = robot_chi2(self.keys, self.views, self.base_T_ee, values, self.opt.noise)
         robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
         if not np.isfinite(robot_factor):
@@ -462,5 +462,3 @@ class UpdateContext:
         add_camera_model(sol, self.ds, [w * sol.scene_weight_scale for w in self.weights], self.Ks, self.noise(calib),
                          at=self.linearised_at, system=system, terms=self.camera_terms())
         return sol
-
-
