@@ -343,18 +343,19 @@ def linear_frames_to_near(scores, counts) -> int | None:
 
 def frames_to_stay_near(steps, mm=NEAR_MM, deg=NEAR_DEG) -> int | None:
     """Fewest frames after which every later update is within ``mm`` / ``deg`` of the full result."""
-    ok = [("cameras" in s and all(c["error_mm"] <= mm and c["error_deg"] <= deg
-                                  for c in s["cameras"].values())) for s in steps[:-1]]  # the last: finish()
-    for i in range(len(ok)):
-        if all(ok[i:]):
-            return steps[i]["frames"]
-    return None
+    return _frames_to_stay(steps, "error", mm, deg)
 
 
 def frames_to_stay_below_sigma(steps, mm, deg) -> int | None:
     """Fewest frames after which every later update's largest total sigma is within ``mm`` / ``deg``:
     when the stop rule at that target says done (its sigma is honest where the 3 sigma coverage holds)."""
-    ok = [("cameras" in s and all(c["sigma_mm"] <= mm and c["sigma_deg"] <= deg for c in s["cameras"].values()))
+    return _frames_to_stay(steps, "sigma", mm, deg)
+
+
+def _frames_to_stay(steps, what, mm, deg) -> int | None:
+    """Fewest frames after which every later update's ``what`` ("error" or "sigma") is within ``mm`` /
+    ``deg`` on every camera (the last step, finish(), left out)."""
+    ok = [("cameras" in s and all(c[f"{what}_mm"] <= mm and c[f"{what}_deg"] <= deg for c in s["cameras"].values()))
           for s in steps[:-1]]
     for i in range(len(ok)):
         if all(ok[i:]):

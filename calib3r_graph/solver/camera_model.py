@@ -151,7 +151,8 @@ def pair_sensitivities(lins, values, keys, Ks, noise, thetas, steps) -> list:
     corr = {v: depth_correction(values, keys, v) for v in views} if noise.depth_correction_sigma > 0 else None
     m, axes = len(thetas), [p % 2 for _, p, _ in thetas]
     coords = [ax if p < 2 else 2 for (_, p, _), ax in zip(thetas, axes)]  # the lifted coordinate each one moves
-    # _lift_change's factor of each parameter, 0 where the view's camera has no such parameter
+    # each parameter's -step / focal length (the lifted coordinate's change per unit of it), 0 where the
+    # view's camera has no such parameter
     g = {v: np.array([[-st.get(v, 0.0) / Ks[v][ax, ax]] for st, ax in zip(steps, axes)]) for v in views}
     # per pair, the rows of C that pick each parameter's column of W, then of W R_ab
     R_ab = np.array([R[lins[i][1].view_a].T @ R[lins[i][1].view_b] for i in idx]).reshape(-1, 3, 3)
