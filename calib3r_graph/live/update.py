@@ -89,6 +89,13 @@ class UpdateContext:
         self.linearised_at = None  # the values the last linear system was linearised at
         self.dropped = {}  # view -> why drop_weak left it out of this update
         self._camera_lins = None  # what the last linear system's camera-model terms are computed from
+        self._robot_graph = None  # (values, calibration, views, robot_graph's graph)
+
+    @property
+    def sigmas(self) -> tuple:
+        """The two noise options a pair's point covariances read (graph.point_covariances), which the
+        per-pair caches compare."""
+        return self.opt.noise.pixel_sigma_px, self.opt.noise.depth_sigma_rel
 
     def terms(self, values, observations=None) -> tuple[list, list]:
         """(match residuals, nominal whitening) per pair at ``values``, what ``robust_weights`` and the
@@ -96,7 +103,7 @@ class UpdateContext:
         scale and correction, and the noise options: a pair whose inputs are all equal to the cached
         ones (the views were not moved since) reuses them."""
         obs = self.observations if observations is None else observations
-        noise = (self.opt.noise.pixel_sigma_px, self.opt.noise.depth_sigma_rel)
+        noise = self.sigmas
         sig = {}
 
         def of(v):
@@ -209,6 +216,16 @@ class UpdateContext:
         add_depth_correction_priors(graph, keys, self.views, noise)
         return graph
 
+    def robot_graph(self, values, calib):
+        """:meth:`graph` without its scene factors (which alone read the weights), built once per
+        values, calibration and views: a step's linear system, its cost check and the update's
+        solution are built at the same point and read the same one (it was built three times an
+        update)."""
+        memo = self._robot_graph
+        if memo is None or memo[0] is not values or memo[1] != calib or memo[2] is not self.views:
+            memo = self._robot_graph = (values, calib, self.views, self.graph(values, None, calib, scene=False))
+        return memo[3]
+
     def deferred_graph(self, values, weights, calib) -> tuple:
         """What :meth:`graph` builds the update's whole graph from: (values, weights, calibration, the
         pairs' whitening at values), kept rather than built. An update needs only its robot factors
@@ -234,13 +251,13 @@ class UpdateContext:
             return factor_system(self.graph(values, weights, calib), values)
         from calib3r_graph.solver.systematic import key_offsets
 
-        rest = self.graph(values, weights, calib, scene=False)
+        rest = self.robot_graph(values, calib)
         offsets = key_offsets(rest, values)  # the same keys as the whole graph's: every view has a robot or
         # rigidity factor, a gauge and (with a correction) a prior
         H, _, factors = factor_system(rest, values, offsets)
         noise, scale = self.noise(calib), 1.0 / (calib.sigma0_sq * calib.kappa)
         thetas, steps = camera_parameters(self.keys, self.ds.cameras, self.Ks) if camera else ([], [])
-        sigmas, corr = (self.opt.noise.pixel_sigma_px, self.opt.noise.depth_sigma_rel), noise.depth_correction_sigma > 0
+        sigmas, corr = self.sigmas, noise.depth_correction_sigma > 0
         lins, moved, W = [], {}, self.terms(values)[1]
         columns = lambda k: np.concatenate([np.arange(offsets[q][0], offsets[q][0] + offsets[q][1]) for q in k])  # noqa: E731
         for i, (o, w) in enumerate(zip(self.observations, weights)):
@@ -333,7 +350,7 @@ class UpdateContext:
         and the next update's warm start need, so evaluating the step costs no pass of its own (the
         graph's error was a second pass over every match, with a GTSAM graph built for each round)."""
         scale = 1.0 / (calib.sigma0_sq * calib.kappa)
-        e = self.graph(at, weights, calib, scene=False).error(values)  # (its robot noise: at at's ee_T_cam)
+        e = self.robot_graph(at, calib).error(values)  # (its robot noise: at at's ee_T_cam)
         W_at, (r, W, white) = self.terms(at)[1], self.whitened(values)  # (the next weights read them too)
         for i, w in enumerate(weights):
             keep = w > 0
@@ -363,8 +380,7 @@ class UpdateContext:
         pairs; the same numbers). Equal, not the same object: a session replaces the noise options
         at every update with the predictions' match noise, and an identity test missed every pair
         of every update."""
-        keys, noise = self.keys, self.opt.noise
-        sigmas = (noise.pixel_sigma_px, noise.depth_sigma_rel)  # all point_covariances reads of the noise
+        keys, noise, sigmas = self.keys, self.opt.noise, self.sigmas
         out = []
         for o in (observations or self.observations):
             key = (o.view_a, o.view_b)
@@ -403,7 +419,7 @@ class UpdateContext:
         build = None
         if isinstance(graph, tuple):
             build = functools.partial(self.graph, *graph[:3], whitening=graph[3])
-            graph = self.graph(*graph[:3], scene=False)  # the robot factors: all the systematic part needs
+            graph = self.robot_graph(graph[0], graph[2])  # the robot factors: all the systematic part needs
         if system is None:
             system = self.linear_system(values, self.weights, calib)
         H, offsets, _ = system
