@@ -11,10 +11,12 @@ with ``calib3r-graph import``, the pairwise frontend's features and pair geometr
   every leave-one-out re-solve. The linearised jackknife holds the robust weights at the full
   solve's; where the two agree without re-weighting but not with it, the difference is the
   re-weighting's (docs/uncertainty.md, *Linearised jackknife*).
-* the time of each.
+* the time of each;
+* ``--repeat-seeds K``: both covers again with ``solve``'s own seeds 0..K-1, to show how finely the
+  re-solving one, the reference, can judge the ratio.
 
     .venv/bin/python bench/jackknife.py [--data sample,sim,rwhe_kuka_1,rwhe_kuka_2,tabb_ds1] [--subsets 2]
-        [--all-max 40] [--control] [--work DIR] [--cache DIR] [--out bench/results]
+        [--all-max 40] [--control] [--repeat-seeds K] [--work DIR] [--cache DIR] [--out bench/results]
 
 Writes ``OUT/jackknife.json`` and ``OUT/jackknife.md``.
 """
@@ -91,20 +93,15 @@ def compare(ds, preds, frames, irls_rounds):
     lin, lin_pose = jk.linearised_jackknife(sol)
     t_lin = time.perf_counter() - t
     shifts_lin, _, _ = jk.linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam))
-    # the re-solving one, with its leave-one-out solutions kept for the side-by-side shifts
+    # the re-solving one, with its leave-one-out solutions kept for the side-by-side shifts (in one
+    # process, so that its time is the work's, as the linearised one's)
     used = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
-    xis = {c: [] for c in sol.ee_T_cam}
-    fits, shifts_res = {}, {}
-
-    def recorded_solve(d, p, o):  # jackknife's own loop; each solution kept under the frame left out
-        s = solve(d, p, o)
-        shifts_res[next(f for f in used if f not in d.frames)] = s.ee_T_cam
-        return s
-
     t = time.perf_counter()
     logging.getLogger("calib3r_graph").setLevel(logging.ERROR)
-    jk._leave_one_out(sub, sp, dataclasses.replace(opt, jackknife="never"), used, xis, fits, recorded_solve, False)
-    res = jk._jackknife_report(sol, xis)
+    solves = jk.leave_one_out_solves(sub, sp, dataclasses.replace(opt, jackknife="never"), used, solve, False, jobs=1)
+    shifts_res = {f: X for f, (X, _) in solves.items()}
+    fits = {f: fit for f, (_, fit) in solves.items() if fit}
+    res = jk._jackknife_report(sol, {c: [X[c] for X in shifts_res.values() if c in X] for c in sol.ee_T_cam})
     t_res = time.perf_counter() - t
     rows = []
     for c in sol.ee_T_cam:
@@ -131,6 +128,40 @@ def compare(ds, preds, frames, irls_rounds):
     return rows
 
 
+def repeatability(ds, preds, frames, seeds: int) -> list:
+    """Rows (one per camera): how much each jackknife's cover of the total moves with ``solve``'s
+    own arbitrary draws (``SolveOptions.seed``: the match subsample, the pairwise RANSAC and the
+    closed-form start), seeds 0 to ``seeds`` - 1 on ``frames``: max / min per ee axis over the seeds,
+    and the spread (standard deviation) of the result itself. A reference that moves this much
+    cannot judge a ratio more finely."""
+    sub, sp = subset_dataset(ds, frames), subset_predictions(preds, frames)
+    covers, results = {}, {}
+    for seed in range(seeds):
+        opt = SolveOptions(noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0))),
+                           progress=False, jackknife="never", seed=seed)
+        sol = solve(sub, sp, opt)
+        lin, _ = jk.linearised_jackknife(sol)
+        res, _ = jk.jackknife(sub, sp, dataclasses.replace(opt, jackknife_method="resolve"), sol, solve, progress=False)
+        for c, X in sol.ee_T_cam.items():
+            if c not in lin or c not in res:
+                continue
+            C = np.asarray(sol.covariance[c])
+            covers.setdefault(c, []).append([list(jk._sigmas(X, jk.cover(C, np.asarray(r[c]["covariance"]))).values())
+                                             for r in (lin, res)])
+            results.setdefault(c, []).append(X)
+    rows = []
+    for c, cv in covers.items():
+        cv = np.array(cv)  # (seeds, 2, 6)
+        X0 = results[c][0]
+        spread = np.std([_ee(X0, gtsam.Pose3.Logmap(X0.between(X))) for X in results[c]], axis=0)
+        rows.append({"frames": list(frames), "camera": c, "seeds": len(cv),
+                     "linearised_max_over_min": (cv[:, 0].max(0) / cv[:, 0].min(0)).tolist(),
+                     "resolve_max_over_min": (cv[:, 1].max(0) / cv[:, 1].min(0)).tolist(),
+                     "ratio_range": [float((cv[:, 0] / cv[:, 1]).min()), float((cv[:, 0] / cv[:, 1]).max())],
+                     "result_spread_ee": spread.tolist()})
+    return rows
+
+
 def coverage(ds, preds, poses, subsets, seed=0):
     """On ``subsets`` seeded subsets of ``poses`` poses: the largest |error / total sigma| over the
     six ee axes against the full data set's result, with the linearised jackknife, the re-solving
@@ -138,7 +169,8 @@ def coverage(ds, preds, poses, subsets, seed=0):
     from calib3r_graph.evaluation.compare import random_subsets
     from calib3r_graph.io.results import covariance_in_ee_frame
 
-    base = SolveOptions(noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0))), progress=False)
+    base = SolveOptions(noise=NoiseOptions(pixel_sigma_px=float(preds.info.get("match_noise_px", 1.0))), progress=False,
+                        jobs=1)  # (one process: the times compare the two methods' work)
     ref = solve(ds, preds, dataclasses.replace(base, jackknife="never"))
     rows = []
     for frames in random_subsets(ds, poses, subsets, seed):
@@ -215,6 +247,19 @@ def table(result) -> str:
             lines.append(f"| {name} {r['camera']} | {r['poses']} | {r['irls_rounds']} | {r['samples'][0]}, "
                          f"{r['samples'][1]} | {min(s):.2f}–{max(s):.2f} | {min(c):.2f}–{max(c):.2f} | "
                          f"{r['time_solve_s']:.1f} / {r['time_linearised_s']:.2f} / {r['time_resolve_s']:.1f} |")
+    if result.get("repeatability"):
+        lines += ["", "How much the covers move with `solve`'s own seeds (`--repeat-seeds K`: the match subsample, the "
+                  "pairwise RANSAC and the closed-form start seeded 0 to K - 1): max / min over the seeds of each "
+                  "method's cover of the total, the largest over the six ee axes; the cover ratio linearised / "
+                  "re-solving over all seeds and axes; the result's own spread (standard deviation, largest axis).",
+                  "", "| data | poses | seeds | re-solving cover max / min | linearised cover max / min | "
+                  "cover ratio, all seeds | result spread (deg, mm) |", "|---|---|---|---|---|---|---|"]
+        for name, rows in result["repeatability"].items():
+            for r in rows:
+                sp = r["result_spread_ee"]
+                lines.append(f"| {name} {r['camera']} | {len(r['frames'])} | {r['seeds']} | "
+                             f"{max(r['resolve_max_over_min']):.2f} | {max(r['linearised_max_over_min']):.2f} | "
+                             f"{r['ratio_range'][0]:.2f}–{r['ratio_range'][1]:.2f} | {max(sp[:3]):.3f}, {max(sp[3:]):.3f} |")
     if result.get("coverage"):
         lines += ["", "Share of seeded subsets (x cameras) whose ee_T_cam is within 3 total sigma of the full data set's "
                   "on every ee axis, with each jackknife (and with the modelled covariance alone):", "",
@@ -239,7 +284,9 @@ def main():
     ap.add_argument("--coverage", default="", help="pose counts (e.g. 6,8): 3-sigma coverage of the full result "
                     "on seeded subsets, with each jackknife")
     ap.add_argument("--coverage-subsets", type=int, default=20)
-    ap.add_argument("--no-compare", action="store_true", help="only --coverage")
+    ap.add_argument("--no-compare", action="store_true", help="only --coverage (and --repeat-seeds)")
+    ap.add_argument("--repeat-seeds", type=int, default=0,
+                    help="also re-run both jackknives on each pick with solve's seeds 0..K-1 (the reference's repeatability)")
     ap.add_argument("--consecutive", default="tabb_ds1",
                     help="data sets whose 10-pose subsets are runs of consecutive frames (default: tabb_ds1)")
     add_work_args(ap, "jackknife_bench")
@@ -257,6 +304,10 @@ def main():
         if args.coverage:
             cov = {int(k): coverage(ds, preds, int(k), args.coverage_subsets) for k in args.coverage.split(",")}
             result.setdefault("coverage", {})[name] = {k: {"summary": coverage_summary(v), "rows": v} for k, v in cov.items()}
+        if args.repeat_seeds:
+            result.setdefault("repeatability", {})[name] = [
+                r for frames in picks_of(ds, args.subsets, args.all_max, name in args.consecutive.split(","))
+                for r in repeatability(ds, preds, frames, args.repeat_seeds)]
         for frames in [] if args.no_compare else picks_of(ds, args.subsets, args.all_max, name in args.consecutive.split(",")):
             for rounds in (default_rounds, 0) if args.control else (default_rounds,):
                 try:

@@ -159,7 +159,7 @@ def _solve_dataset(args):
     opt = SolveOptions(noise=_noise_from_args(args, preds.info), max_matches_per_pair=args.max_matches_per_pair,
                        irls_rounds=args.irls_rounds, max_iterations=args.max_iterations,
                        reprojection=args.reprojection, init=args.init, jackknife=args.jackknife,
-                       jackknife_method=getattr(args, "jackknife_method", None),
+                       jackknife_method=getattr(args, "jackknife_method", None), jobs=args.jobs,
                        progress=not args.quiet)
     return ds, preds, opt, solve(ds, preds, opt)
 
@@ -491,6 +491,16 @@ def _add_export_args(p):
     p.set_defaults(func=cmd_export)
 
 
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n}: must be 1 or more")
+    return n
+
+
 def _add_solve_args(s):
     s.add_argument("dataset", help="dataset folder (calib3r-dataset/1)")
     s.add_argument("--out", help="output folder (default: results/<dataset name>)")
@@ -511,6 +521,9 @@ def _add_solve_args(s):
                    help="resolve: n re-solves, robust re-weighting and noise calibration included; "
                         "linearised: one downdate of the solved graph per pose (a fraction of a second, "
                         "robust weights held; docs/uncertainty.md) (default: resolve)")
+    g.add_argument("--jobs", type=_positive_int, default=None, metavar="N",
+                   help="processes for the re-solving jackknife's independent solves (the same numbers at any N; "
+                        "default: every CPU)")
     g.add_argument("--reprojection", action="store_true",
                    help="add 2D reprojection factors (double-counts match noise; off by default)")
     g.add_argument("--intrinsics-sigma-px", metavar="F,C",

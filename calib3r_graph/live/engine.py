@@ -353,7 +353,7 @@ class Engine:
 
     # ------------------------------------------------------------------ placement
     def _cold(self, base_T_ee, preds, observations):
-        init = initialise(sorted(preds.views), observations, base_T_ee, "robot poses")
+        init = initialise(sorted(preds.views), observations, base_T_ee, "robot poses", seed=self.opt.seed)
         state = State(dict(init.base_T_cam), dict(init.depth_scale), {}, dict(init.ee_T_cam))
         return state, [m if m is not None else np.zeros(len(o), bool) for o, m in zip(observations, init.inliers)]
 
@@ -375,7 +375,7 @@ class Engine:
         # residuals at the warm start (UpdateContext.warm_weights)
         new = [i for i, o in enumerate(observations)
                if o.view_a not in state.base_T_cam or o.view_b not in state.base_T_cam]
-        for i, sim in zip(new, pairwise_sim3([observations[i] for i in new])):
+        for i, sim in zip(new, pairwise_sim3([observations[i] for i in new], seed=self.opt.seed)):
             inliers[i] = sim
         while True:  # place the unplaced view with the strongest pair to a placed one, until none is left
             best = None

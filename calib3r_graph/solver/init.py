@@ -173,10 +173,12 @@ def hand_eye_closed_form(comps, base_T_ee, robot_file="robot_poses.csv", max_pai
     return ee_T_cam, scales
 
 
-def initialise(views, observations, base_T_ee, robot_file="robot_poses.csv", visual_poses=None) -> Initialisation:
+def initialise(views, observations, base_T_ee, robot_file="robot_poses.csv", visual_poses=None,
+               seed=0) -> Initialisation:
     """``visual_poses`` ({view: world_T_cam 4x4}, e.g. COLMAP's, in the predictions' depth unit)
-    replaces the spanning tree of pairwise alignments when given."""
-    sims = pairwise_sim3(observations)
+    replaces the spanning tree of pairwise alignments when given. ``seed``: the pairwise RANSAC's and
+    the closed form's random draws (``SolveOptions.seed``)."""
+    sims = pairwise_sim3(observations, seed=seed)
     if visual_poses is not None:
         comps = [{v: (gtsam.Pose3(visual_poses[v]), 1.0) for v in views if v in visual_poses}]
         if not comps[0]:
@@ -191,7 +193,7 @@ def initialise(views, observations, base_T_ee, robot_file="robot_poses.csv", vis
         log.warning("views %s: not co-visible with any other robot pose; left out of the solve", ", ".join(sorted(c)))
     if not usable:
         raise SolveError("no two robot poses see common structure: the co-visibility graph has no usable component")
-    ee_T_cam, scales = hand_eye_closed_form(usable, base_T_ee, robot_file)
+    ee_T_cam, scales = hand_eye_closed_form(usable, base_T_ee, robot_file, seed=seed)
     base_T_cam, depth_scale = {}, {}
     for c, lam in zip(usable, scales):
         if not lam > 0:

@@ -6,7 +6,8 @@ rwhe_kuka_1's 6-pose subsets only 70 % of the solutions were within 3 sigma of t
 recording's on every axis (95 % with the jackknife; bench/views_real.py). The jackknife needs no
 model of that error: it leaves each pose out in turn, by a downdate of the solved graph's
 information (:func:`linearised_jackknife`) or by re-solving (:func:`jackknife` with method
-"resolve", solve's default: ``METHOD``). ``solve`` runs it by default below ``JACKKNIFE_BELOW`` poses and reports the
+"resolve", solve's default: ``METHOD``; the n solves run in parallel processes,
+:func:`leave_one_out_solves`). ``solve`` runs it by default below ``JACKKNIFE_BELOW`` poses and reports the
 total covariance as the cover of both (``cover``); ``solve --jackknife always`` runs it at any size.
 
 The same solves name a pose that the rest of the data reject (``influential_pose``: Baarda's
@@ -14,6 +15,8 @@ data snooping on the robot chi2); ``solve`` reports it in words and does not dro
 
 The solver is passed in (``solve_fn``), so this module stays below ``solve``.
 """
+
+import threading
 
 import numpy as np
 
@@ -34,16 +37,16 @@ MAX_STEP = (0.5, 0.5)
 
 
 # How solve's jackknife is computed (SolveOptions.jackknife_method, ``--jackknife-method``; None
-# takes this): "resolve" (n re-solves) or "linearised" (:func:`linearised_jackknife`; the live
-# engine's). bench/jackknife.py (bench/results/jackknife.md): the covers of the total agree within
-# 20 % on the sample, the simulator and rwhe_kuka_2, not on rwhe_kuka_1 (0.42 in rx on a 10-pose
-# subset, 0.79 on all 30 poses) nor on one of tabb_ds1's 10-frame windows (0.65). The gap is solve's
-# robust re-weighting, which the linearised one holds: with it off (irls_rounds=0) the two agree
-# within 2 % there (rwhe_kuka_1, all poses and that subset; 0.85-1.11 on tabb_ds1's windows). The
-# re-solving one is path-dependent there (its rx sigma moves by 31 % between 2 and 6 rounds) but
-# covers better: the 3-sigma coverage of the full result on rwhe_kuka_1's 6 / 8-pose subsets is
-# 95 / 100 % with it, 89 / 95 % linearised (53 / 80 % without a jackknife). So solve keeps it; the
-# linearised one costs 0.1-0.3 s instead of n solves.
+# takes this): "resolve" (n re-solves, in parallel processes) or "linearised"
+# (:func:`linearised_jackknife`; the live engine's). bench/jackknife.py (bench/results/jackknife.md,
+# 2026-12-07): the covers of the total agree within 20 % on the sample, the simulator and
+# rwhe_kuka_2, not on rwhe_kuka_1 (0.64 on a 10-pose subset, 0.79 on all 30 poses) nor on one of
+# tabb_ds1's 10-frame windows (0.61). The gap is solve's robust re-weighting, which the linearised
+# one holds: with it off (irls_rounds=0) the two agree within 7 % there. The re-solving cover repeats
+# within 11 % across solve's seeds, so the gap is not its noise; both cover the full result equally
+# often (rwhe_kuka_1's 6 / 8-pose subsets: 83 / 94 %, 56 / 78 % without a jackknife). solve keeps
+# re-solving, the jackknife of the estimator it is; the linearised one costs 0.1-0.2 s instead of
+# n solves (docs/uncertainty.md).
 METHOD = "resolve"
 
 
@@ -74,42 +77,86 @@ def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> tuple[dict, dict 
     if method == "linearised" and sol.graph is not None:
         return linearised_jackknife(sol)
     frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
-    xis = {c: [] for c in sol.ee_T_cam}
-    fits = {}  # frame left out -> (robot chi2, dof) of that solve
     opt = dataclasses.replace(opt, progress=False, jackknife="never")
     package_log = logging.getLogger("calib3r_graph")
     level = package_log.level
     package_log.setLevel(logging.ERROR)  # the sub-solves repeat the main solve's warnings
     try:
-        _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress)
+        solves = leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress)
     finally:
         package_log.setLevel(level)
+    xis = {c: [X[c] for X, _ in solves.values() if c in X] for c in sol.ee_T_cam}
+    fits = {f: fit for f, (_, fit) in solves.items() if fit}  # frame left out -> (robot chi2, dof) of that solve
     report = _jackknife_report(sol, xis)
     for rep in report.values():
         rep["method"] = "resolve"
     return report, influential_pose(sol.stats.get("noise_calibration", {}).get("robot_chi2_dof"), fits)
 
 
-def _leave_one_out(ds, preds, opt, frames, xis, fits, solve_fn, progress):
-    """Append each leave-one-frame-out solution's ee_T_cam to xis[camera]; fits[frame]: its robot
-    chi2 and degrees of freedom."""
+def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True, jobs=None) -> dict:
+    """{frame: (ee_T_cam {camera: Pose3}, robot (chi2, dof) or None)} of the solve without each of
+    ``frames`` (``solve_fn(ds, preds, opt)`` on the rest), for the solves that succeed, in the order
+    of ``frames``.
+
+    The solves are independent, so they run in up to ``jobs`` forked processes (:func:`workers`;
+    ``jobs`` None: ``opt.jobs``): each is the same deterministic solve as in one process, so the
+    numbers do not depend on how many run at once (tests/test_jackknife.py). The sample's 8 solves:
+    4.7 s in one process, 2.5 s in two on 2 cores (docs/uncertainty.md)."""
+    import gtsam
     from tqdm import tqdm
 
+    global _JOB
+    n = workers(getattr(opt, "jobs", None) if jobs is None else jobs, len(frames))
+    bar = dict(total=len(frames), desc="jackknife", disable=None if progress else True, leave=False)
+    with _JOB_LOCK:  # (one set of solves at a time reads _JOB)
+        _JOB = (ds, preds, opt, list(frames), solve_fn)
+        try:
+            if n > 1:
+                import multiprocessing
+
+                with multiprocessing.get_context("fork").Pool(n) as pool:
+                    done = list(tqdm(pool.imap(_solve_without, frames), **bar))
+            else:
+                done = [_solve_without(f) for f in tqdm(frames, **bar)]
+        finally:
+            _JOB = None
+    return {f: ({c: gtsam.Pose3(M) for c, M in r[0].items()}, r[1]) for f, r in done if r is not None}
+
+
+_JOB = None  # (ds, preds, opt, frames, solve_fn) of the leave-one-out solves under way: what a forked worker reads
+_JOB_LOCK = threading.Lock()
+
+
+def _solve_without(frame):
+    """(frame, (ee_T_cam as 4x4 arrays, robot (chi2, dof)) of the solve without it, or None where it
+    fails); the arrays pickle, for a worker process."""
     from calib3r_graph.errors import Calib3rError
     from calib3r_graph.io.dataset import subset_dataset
     from calib3r_graph.io.predictions import subset_predictions
 
-    for f in tqdm(frames, desc="jackknife", disable=None if progress else True, leave=False):
-        keep = [g for g in frames if g != f]
-        try:
-            s = solve_fn(subset_dataset(ds, keep), subset_predictions(preds, keep), opt)
-        except Calib3rError:
-            continue
-        for c, X in s.ee_T_cam.items():
-            if c in xis:
-                xis[c].append(X)
-        if s.stats["noise_calibration"].get("robot_chi2_dof"):
-            fits[f] = s.stats["noise_calibration"]["robot_chi2_dof"]
+    ds, preds, opt, frames, solve_fn = _JOB
+    keep = [g for g in frames if g != frame]
+    try:
+        s = solve_fn(subset_dataset(ds, keep), subset_predictions(preds, keep), opt)
+    except Calib3rError:
+        return frame, None
+    return frame, ({c: X.matrix() for c, X in s.ee_T_cam.items()}, s.stats["noise_calibration"].get("robot_chi2_dof"))
+
+
+def workers(jobs, n: int) -> int:
+    """How many processes run ``n`` independent solves: ``jobs`` (None: every CPU this process may
+    use), at most n. One where a forked child is not safe or not allowed: off Linux (macOS's
+    system libraries are not fork-safe, Windows has no fork) and inside a pool's worker (a daemon
+    process may not have children)."""
+    import multiprocessing
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux") or multiprocessing.current_process().daemon:
+        return 1
+    if jobs is None:
+        jobs = len(os.sched_getaffinity(0))
+    return max(1, min(int(jobs), n))
 
 
 def linearised_jackknife(sol, system=None) -> tuple[dict, dict | None]:

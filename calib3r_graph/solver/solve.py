@@ -50,13 +50,15 @@ class SolveOptions:
     progress: bool = True  # LM iterations on stderr
     max_iterations: int = 50
     reprojection: bool = False  # see factors/reprojection.py: double-counts the match noise
-    seed: int = 0
+    seed: int = 0  # every random draw of a solve: the match subsample, the pairwise RANSAC, the closed form
     # leave-one-pose-out solves whose spread the total covariance must cover (jackknife.py):
     # "auto" below JACKKNIFE_BELOW robot poses, "always", "never"
     jackknife: str = "auto"
     # how: "resolve" (n re-solves) or "linearised" (a downdate of the solved graph per pose); None:
     # jackknife.METHOD ("resolve"; bench/jackknife.py measures the two)
     jackknife_method: str | None = None
+    # processes for the re-solving jackknife's independent solves (jackknife.workers); None: every CPU
+    jobs: int | None = None
 
 
 @dataclass
@@ -141,7 +143,7 @@ def solve(ds: Dataset, preds: Predictions, opt: SolveOptions) -> Solution:
 
         visual_poses = read_poses_csv(ds.root / "predictions" / preds.name / "poses.csv")
     init = initialise(sorted(preds.views), observations, ds.base_T_ee, str(ds.root / ds.meta["robot"]["poses"]),
-                      visual_poses)
+                      visual_poses, seed=opt.seed)
     timings["initialisation"] = time.perf_counter() - t
     used = set(init.base_T_cam)
     pairs = [(o, m) for o, m in zip(observations, init.inliers) if o.view_a in used and o.view_b in used]
