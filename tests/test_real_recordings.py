@@ -4,6 +4,7 @@ the images and calibrate sensible intrinsics."""
 
 import json
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -51,8 +52,9 @@ def test_tabb_import_detects_inverted_millimetres(tmp_path):
     assert 7 < gain < 10 and abs(axis[1]) > 0.99
 
 
-def import_and_compare(tmp_path, fmt, src, board, methods) -> dict:
-    """import -> colmap frontend (RGB only) -> compare; {method: (e_t m, e_theta rad)} to pattern-ba."""
+def import_and_compare(tmp_path, fmt, src, board, methods, with_result=False):
+    """import -> colmap frontend (RGB only) -> compare; {method: (e_t m, e_theta rad)} to pattern-ba
+    (and, ``with_result``, comparison.json's result and the reference {camera: Pose3} too)."""
     root = tmp_path / fmt
     import_recording(fmt, REAL / src, root, board, progress=False)
     assert main(["-q", "predict", str(root), "--frontend", "colmap"]) == 0
@@ -61,19 +63,31 @@ def import_and_compare(tmp_path, fmt, src, board, methods) -> dict:
     res = json.loads((out / "comparison.json").read_text())
     assert all(r["status"] == "ok" for r in res["methods"].values())
     ref = ee_T_cam_by_camera(res["methods"]["pattern-ba"]["cameras"])
-    return {m: e["cam0"] for m, e in errors_against(res, ref).items()}
+    errs = {m: e["cam0"] for m, e in errors_against(res, ref).items()}
+    return (errs, res, ref) if with_result else errs
 
 
 @needs_real
 @pytest.mark.slow
 def test_rwhe_patternless_agrees_with_the_pattern_reference(tmp_path):
     """The issue's acceptance on rwhe_kuka_1, end to end: import, the colmap frontend (RGB only),
-    compare. Ours never uses the board's geometry, yet lands within 1 mm / 0.05 deg of
-    pattern-ba and beats both two-stage pipelines in translation and rotation."""
-    errs = import_and_compare(tmp_path, "rwhe", "rwhe_kuka_1", (28, 17),
-                              "park,pattern-ba,jcr-colmap,jcr-predictions,calib3r-graph")
+    compare. Ours never uses the board's geometry, yet lands within its own 3 total sigma of
+    pattern-ba on every ee axis, within 3 mm / 0.05 deg (the reference repeats to about 1 mm between
+    the recording's halves, so it judges tolerances from 3 mm: docs/real-recordings.md), and beats
+    both two-stage pipelines in translation and rotation. (It was 0.76-1.03 mm from it in three
+    runs: COLMAP's reconstruction differs from run to run, its RANSAC and mapper seeds fixed and on
+    one thread too, so a 1 mm bound failed one run in three.)"""
+    from calib3r_graph.io.results import tangent_in_ee_frame
+
+    errs, res, ref = import_and_compare(tmp_path, "rwhe", "rwhe_kuka_1", (28, 17),
+                                        "park,pattern-ba,jcr-colmap,jcr-predictions,calib3r-graph", with_result=True)
     ours = errs["calib3r-graph"]
-    assert ours[0] < 1e-3 and np.degrees(ours[1]) < 0.05, ours
+    assert ours[0] < 3e-3 and np.degrees(ours[1]) < 0.05, ours
+    cam = res["methods"]["calib3r-graph"]["cameras"]["cam0"]
+    X = ee_T_cam_by_camera(res["methods"]["calib3r-graph"]["cameras"])["cam0"]
+    d = tangent_in_ee_frame(X.rotation().matrix(), gtsam.Pose3.Logmap(ref["cam0"].between(X)))
+    z = {k: abs(d[k]) / cam["sigma_ee_frame"][k] for k in d}
+    assert max(z.values()) < 3, z
     for two_stage in ("jcr-colmap", "jcr-predictions"):
         assert ours[0] < errs[two_stage][0] and ours[1] < errs[two_stage][1], (two_stage, errs[two_stage])
 
