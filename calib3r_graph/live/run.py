@@ -4,7 +4,6 @@ random order), or a dataset folder watched for the frames a capture script adds.
 import json
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 

@@ -166,10 +166,8 @@ class LiveSession:
 
             preds = load_predictions(self.ds.root, predictions, self.ds.cameras, None)
             self.source = RecordedPredictions(preds)
-            info = preds.info
         else:
             self.source = IncrementalPairwise(cache_dir=cache_dir or (self.out / "cache" if self.out else None))
-            info = {}
         # the match noise: the predictions' info.json match_noise_px (the pairwise frontend's, per update),
         # as solve reads it, unless the options were given with it
         self.pixel_from_predictions = opt is None if pixel_from_predictions is None else pixel_from_predictions
