@@ -114,7 +114,9 @@ def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True, jobs=N
             if n > 1:
                 import multiprocessing
 
-                with multiprocessing.get_context("fork").Pool(n) as pool:
+                # (the workers ignore Ctrl-C: the parent's KeyboardInterrupt ends the pool, and the
+                # terminal's SIGINT to every process would print each worker's traceback)
+                with multiprocessing.get_context("fork").Pool(n, initializer=_ignore_interrupt) as pool:
                     done = list(tqdm(pool.imap(_solve_without, frames), **bar))
             else:
                 done = [_solve_without(f) for f in tqdm(frames, **bar)]
@@ -125,6 +127,12 @@ def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True, jobs=N
 
 _JOB = None  # (ds, preds, opt, frames, solve_fn) of the leave-one-out solves under way: what a forked worker reads
 _JOB_LOCK = threading.Lock()
+
+
+def _ignore_interrupt():
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _solve_without(frame):
