@@ -414,3 +414,47 @@ def test_a_view_whose_pairs_are_all_cut_leaves_the_update_not_the_session(simula
         [u.message for u in ups]
     assert weak in {d["view"] for d in session.sol.views_dropped}
     assert weak not in session.sol.base_T_cam and len(session.sol.base_T_cam) == len(ups) - 1
+
+
+def test_the_readmes_capture_loop_runs_as_written(simulated, tmp_path, monkeypatch, capsys):
+    """README's LiveSession example, executed as it stands but for a target no 8 frames reach (the
+    simulator's is met at 3), on a simulated cell: images handed as HxWx3 uint8 arrays, no move
+    before the first calibration, the robot moved to each later update's first proposal, the
+    session finished. If the API the README shows changes, this fails (it did: the example moved the
+    robot to ``next_poses[0]`` before there was one)."""
+    import re
+    import shutil
+    from pathlib import Path
+
+    import cv2
+
+    root = simulated(seed=3, frames=8, images=True, width=320, height=240)
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    code = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "LiveSession(" in b)
+    assert "target_mm=1.0, target_deg=0.1" in code
+    code = code.replace("target_mm=1.0, target_deg=0.1", "target_mm=0.001, target_deg=0.0001")
+    (tmp_path / "mycell").mkdir()
+    shutil.copy(root / "dataset.yaml", tmp_path / "mycell" / "dataset.yaml")  # the cameras only
+    monkeypatch.chdir(tmp_path)
+    ds = load_dataset(root)
+    moved = []
+
+    def capture():
+        for f in ds.frames:
+            image = cv2.imread(str(root / "images" / "cam0" / f"{f}.png"))[:, :, ::-1].copy()
+            yield f, ds.base_T_ee[f].matrix(), image
+
+    class Robot:
+        def move_to(self, base_T_ee):
+            moved.append(np.asarray(base_T_ee))
+
+    scope = {"capture": capture, "robot": Robot()}
+    exec(compile(code, "README.md", "exec"), scope)
+    final = scope["final"]
+    assert set(final.ee_T_cam) == {"cam0"} and np.all(np.isfinite(np.asarray(final.ee_T_cam["cam0"])))
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.strip()]
+    assert len(lines) == 8 and all("frames" in x for x in lines)  # a status line a frame
+    waiting = sum("waiting" in x for x in lines)
+    assert 1 <= waiting <= 3 and len(moved) == 8 - waiting  # a move after every calibrated update
+    assert all(M.shape == (4, 4) and np.allclose(M[3], [0, 0, 0, 1]) for M in moved)
+    assert (tmp_path / "mycell_live" / "calibration.json").is_file()
