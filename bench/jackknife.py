@@ -98,7 +98,7 @@ def compare(ds, preds, frames, irls_rounds):
     used = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
     t = time.perf_counter()
     logging.getLogger("calib3r_graph").setLevel(logging.ERROR)
-    solves = jk.leave_one_out_solves(sub, sp, dataclasses.replace(opt, jackknife="never"), used, solve, False, jobs=1)
+    solves = jk.leave_one_out_solves(sub, sp, dataclasses.replace(opt, jackknife="never", jobs=1), used, solve, False)
     shifts_res = {f: X for f, (X, _) in solves.items()}
     fits = {f: fit for f, (_, fit) in solves.items() if fit}
     res = jk._jackknife_report(sol, {c: [X[c] for X in shifts_res.values() if c in X] for c in sol.ee_T_cam})

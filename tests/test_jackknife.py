@@ -163,7 +163,9 @@ def test_the_re_solving_jackknife_gives_the_same_numbers_in_one_process_and_in_t
     """Its leave-one-out solves run in forked processes (jackknife.workers): each is the same
     deterministic solve, so the covariance, the samples and the pose it names are the same to the
     bit as in one process, and the samples keep the frames' order."""
-    from calib3r_graph.solver.jackknife import jackknife, leave_one_out_solves, workers
+    import dataclasses
+
+    from calib3r_graph.solver.jackknife import _jackknife_report, jackknife, leave_one_out_solves, workers
 
     ds = load_dataset(SAMPLE)
     preds = load_predictions(ds.root, "sim", ds.cameras, set(ds.frames))
@@ -171,17 +173,13 @@ def test_the_re_solving_jackknife_gives_the_same_numbers_in_one_process_and_in_t
     sub, sub_preds = subset_dataset(ds, frames), subset_predictions(preds, frames)
     opt = SolveOptions(progress=False, jackknife="never")
     sol = solve(sub, sub_preds, opt)
-    one = leave_one_out_solves(sub, sub_preds, opt, frames, solve, progress=False, jobs=1)
-    two = leave_one_out_solves(sub, sub_preds, opt, frames, solve, progress=False, jobs=2)
+    one = leave_one_out_solves(sub, sub_preds, dataclasses.replace(opt, jobs=1), frames, solve, progress=False)
+    two = leave_one_out_solves(sub, sub_preds, dataclasses.replace(opt, jobs=2), frames, solve, progress=False)
     assert list(one) == list(two) == [f for f in frames if f in one] and len(one) >= 5
     for f in one:
         for c, X in one[f][0].items():
             np.testing.assert_array_equal(X.matrix(), two[f][0][c].matrix())
         assert one[f][1] == two[f][1]
-    import dataclasses
-
-    from calib3r_graph.solver.jackknife import _jackknife_report
-
     report, _ = jackknife(sub, sub_preds, dataclasses.replace(opt, jobs=2), sol, solve, progress=False)  # (opt.jobs)
     xis = {c: [X[c] for X, _ in one.values()] for c in sol.ee_T_cam}
     assert all(report[c]["covariance"] == _jackknife_report(sol, xis)[c]["covariance"] for c in sol.ee_T_cam)

@@ -93,20 +93,20 @@ def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> tuple[dict, dict 
     return report, influential_pose(sol.stats.get("noise_calibration", {}).get("robot_chi2_dof"), fits)
 
 
-def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True, jobs=None) -> dict:
+def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True) -> dict:
     """{frame: (ee_T_cam {camera: Pose3}, robot (chi2, dof) or None)} of the solve without each of
     ``frames`` (``solve_fn(ds, preds, opt)`` on the rest), for the solves that succeed, in the order
     of ``frames``.
 
-    The solves are independent, so they run in up to ``jobs`` forked processes (:func:`workers`;
-    ``jobs`` None: ``opt.jobs``): each is the same deterministic solve as in one process, so the
-    numbers do not depend on how many run at once (tests/test_jackknife.py). The sample's 8 solves:
-    4.7 s in one process, 2.5 s in two on 2 cores (docs/uncertainty.md)."""
+    The solves are independent, so they run in up to ``opt.jobs`` forked processes (:func:`workers`):
+    each is the same deterministic solve as in one process, so the numbers do not depend on how many
+    run at once (tests/test_jackknife.py). The sample's 8 solves: 4.7 s in one process, 2.5 s in two
+    on 2 cores (docs/uncertainty.md)."""
     import gtsam
     from tqdm import tqdm
 
     global _JOB
-    n = workers(getattr(opt, "jobs", None) if jobs is None else jobs, len(frames))
+    n = workers(getattr(opt, "jobs", None), len(frames))
     bar = dict(total=len(frames), desc="jackknife", disable=None if progress else True, leave=False)
     with _JOB_LOCK:  # (one set of solves at a time reads _JOB)
         _JOB = (ds, preds, opt, list(frames), solve_fn)
