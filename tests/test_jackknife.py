@@ -184,3 +184,44 @@ def test_the_re_solving_jackknife_gives_the_same_numbers_in_one_process_and_in_t
     xis = {c: [X[c] for X, _ in one.values()] for c in sol.ee_T_cam}
     assert all(report[c]["covariance"] == _jackknife_report(sol, xis)[c]["covariance"] for c in sol.ee_T_cam)
     assert workers(8, 3) in (1, 3) and workers(1, 8) == 1 and workers(None, 1) == 1
+
+
+def _dies_without(frame):
+    """A solve_fn for leave_one_out_solves whose worker process is killed (SIGKILL, as the
+    out-of-memory killer does) when it solves without ``frame``, and which solves otherwise."""
+    def solve_fn(ds, preds, opt):
+        import os
+        import signal
+
+        if frame not in ds.frames:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return solve(ds, preds, opt)
+    return solve_fn
+
+
+def test_a_worker_killed_from_outside_stops_the_jackknife_with_one_line_instead_of_a_hang():
+    """Pool.imap waits for ever for the result of a worker that died; the jackknife names the worker
+    and how it ended, within a second, and the process goes on (its parent is not killed)."""
+    import dataclasses
+    import sys
+    import time
+
+    from calib3r_graph.errors import Calib3rError
+    from calib3r_graph.solver.jackknife import leave_one_out_solves, workers
+
+    if workers(2, 2) < 2:
+        pytest.skip(f"one process only on {sys.platform}")
+    ds = load_dataset(SAMPLE)
+    preds = load_predictions(ds.root, "sim", ds.cameras, set(ds.frames))
+    frames = sorted(ds.frames)[:5]
+    sub, sub_preds = subset_dataset(ds, frames), subset_predictions(preds, frames)
+    opt = SolveOptions(progress=False, jackknife="never", jobs=2)
+    t0 = time.perf_counter()
+    with pytest.raises(Calib3rError, match=r"worker process \d+ was killed by SIGKILL after \d of 5 re-solves"):
+        leave_one_out_solves(sub, sub_preds, opt, frames, _dies_without(frames[2]), progress=False)
+    assert time.perf_counter() - t0 < 30  # five sample solves of 4 poses take about 2 s; a hang would not return
+    # the next jackknife runs as before: the same solutions as in one process
+    two = leave_one_out_solves(sub, sub_preds, opt, frames, solve, progress=False)
+    one = leave_one_out_solves(sub, sub_preds, dataclasses.replace(opt, jobs=1), frames, solve, progress=False)
+    assert list(two) == list(one) and len(one) >= 4
+    assert all(np.array_equal(two[f][0][c].matrix(), X.matrix()) for f in one for c, X in one[f][0].items())

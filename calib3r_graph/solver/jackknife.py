@@ -112,12 +112,7 @@ def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True) -> dic
         _JOB = (ds, preds, opt, list(frames), solve_fn)
         try:
             if n > 1:
-                import multiprocessing
-
-                # (the workers ignore Ctrl-C: the parent's KeyboardInterrupt ends the pool, and the
-                # terminal's SIGINT to every process would print each worker's traceback)
-                with multiprocessing.get_context("fork").Pool(n, initializer=_ignore_interrupt) as pool:
-                    done = list(tqdm(pool.imap(_solve_without, frames), **bar))
+                done = _in_processes(frames, n, bar)
             else:
                 done = [_solve_without(f) for f in tqdm(frames, **bar)]
         finally:
@@ -127,6 +122,49 @@ def leave_one_out_solves(ds, preds, opt, frames, solve_fn, progress=True) -> dic
 
 _JOB = None  # (ds, preds, opt, frames, solve_fn) of the leave-one-out solves under way: what a forked worker reads
 _JOB_LOCK = threading.Lock()
+
+
+def _in_processes(frames, n: int, bar: dict) -> list:
+    """``_solve_without`` of each frame in ``n`` forked processes, in the order of ``frames``.
+
+    The workers ignore Ctrl-C: the parent's KeyboardInterrupt ends the pool, and the terminal's
+    SIGINT to every process would print each worker's traceback. A worker that dies (the
+    out-of-memory killer, a ``kill``) takes its solve with it, and ``Pool.imap`` would wait for
+    that result for ever: the parent looks every ``POLL_S`` whether a worker it started has ended,
+    and raises :class:`Calib3rError` naming it if one has."""
+    import multiprocessing
+    import signal
+
+    from tqdm import tqdm
+
+    from calib3r_graph.errors import Calib3rError
+
+    ctx = multiprocessing.get_context("fork")
+    before = set(multiprocessing.active_children())
+    with ctx.Pool(n, initializer=_ignore_interrupt) as pool:
+        started = set(multiprocessing.active_children()) - before  # this pool's workers
+        results, done = pool.imap(_solve_without, frames), []
+        with tqdm(**bar) as progress:
+            while len(done) < len(frames):
+                try:
+                    done.append(results.next(timeout=POLL_S))
+                    progress.update()
+                    continue
+                except multiprocessing.TimeoutError:
+                    pass
+                dead = sorted((p for p in started if not p.is_alive()), key=lambda p: p.pid)
+                if dead:
+                    code = dead[0].exitcode
+                    how = f"was killed by {signal.Signals(-code).name}" if code is not None and code < 0 \
+                        else f"exited with {code}"
+                    raise Calib3rError(
+                        f"jackknife: its worker process {dead[0].pid} {how} after {len(done)} of {len(frames)} "
+                        "re-solves (the out-of-memory killer? `dmesg` says), and the solve stopped; run it again, "
+                        "with --jobs 1 for one process")
+    return done
+
+
+POLL_S = 0.5  # how often the parent looks whether a worker has died (_in_processes)
 
 
 def _ignore_interrupt():
