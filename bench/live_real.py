@@ -257,13 +257,13 @@ def oracle_order(ref, base_T_ee: dict, progress=True) -> tuple[list, list]:
 
 
 def sigma_score(ref, base_T_ee: dict, frames: list, covs) -> float:
-    """The guide's own criterion (solver/plan.py's ``objective``, the scale's term left out) with the
+    """The guide's own criterion (solver/guidance.py's ``objective``, the scale's term left out) with the
     subset's true information: the root sum of squares of sigma / (3 mm, 0.2 deg) over the six ee axes,
     summed over the cameras, the sigma being the subset's noise-model covariance
     (:meth:`LinearModel.covariance`) plus the full result's systematic part scaled by the squared
-    systematic-error gain of the subset's motion against the full one's (plan.score_candidates' first
+    systematic-error gain of the subset's motion against the full one's (guidance.score_candidates' first
     pass)."""
-    from calib3r_graph.solver.plan import objective
+    from calib3r_graph.solver.guidance import objective
     from calib3r_graph.solver.uncertainty import systematic_error_gain
 
     if covs is None:

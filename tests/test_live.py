@@ -1,4 +1,4 @@
-"""Live, guided calibration (calib3r_graph/live, solver/plan.py's guidance, the linearised jackknife)."""
+"""Live, guided calibration (calib3r_graph/live, solver/guidance.py, the linearised jackknife)."""
 
 import json
 
@@ -140,8 +140,8 @@ def test_a_replay_names_a_pose_row_that_does_not_parse_once(simulated, tmp_path,
 
 
 def test_guidance_stays_in_the_visited_region_and_looks_at_the_scene(simulated):
-    from calib3r_graph.solver import plan
-    from calib3r_graph.solver.plan import candidate_poses, scene_geometry
+    from calib3r_graph.solver import guidance
+    from calib3r_graph.solver.guidance import candidate_poses, scene_geometry
 
     root = simulated(**SIM)
     session = LiveSession(root, predictions="sim", k_next=5, margin_m=0.05)
@@ -157,8 +157,8 @@ def test_guidance_stays_in_the_visited_region_and_looks_at_the_scene(simulated):
         assert np.all(E.translation() >= lo - 1e-9) and np.all(E.translation() <= hi + 1e-9)
         C = E.compose(X)
         to_scene = centroid - C.translation()
-        # at the distances seen so far, or (the scale moves, solver/plan.py) within DISTANCE_STEPS of their median
-        step = max(getattr(plan, "DISTANCE_STEPS", (0.0,)))
+        # at the distances seen so far, or (the scale moves, solver/guidance.py) within DISTANCE_STEPS of their median
+        step = max(guidance.DISTANCE_STEPS)
         lo_d, hi_d = min(dist.min(), np.median(dist) * (1 - step)), max(dist.max(), np.median(dist) * (1 + step))
         assert lo_d * 0.99 <= np.linalg.norm(to_scene) <= hi_d * 1.01
     kinds = {k for k, _ in candidate_poses(session.sol, session.base_T_ee)}

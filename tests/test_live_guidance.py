@@ -1,4 +1,4 @@
-"""Live guidance (solver/plan.py): on an orbit, where the metric scale cannot be observed, the guide
+"""Live guidance (solver/guidance.py): on an orbit, where the metric scale cannot be observed, the guide
 proposes a move toward or away from the scene first, and the pose it proposes, rendered and added,
 measures the scale. Fixed replay orders (live/run.py's replay with a list)."""
 
@@ -23,7 +23,7 @@ def _scale_rel(up) -> float:
 
 
 def test_orbit_guidance_moves_toward_or_away_first_and_measures_the_scale(simulated, tmp_path):
-    from calib3r_graph.solver.plan import distance_band, scene_geometry
+    from calib3r_graph.solver.guidance import distance_band, scene_geometry
 
     root = simulated(**ORBIT)
     session = LiveSession(root, target_mm=0.5, target_deg=0.05, out=tmp_path / "live")
@@ -64,12 +64,12 @@ def test_replay_takes_a_fixed_order(simulated, cut):
 
 def test_candidate_jackknife_equals_the_linearised_jackknife_of_the_graph_with_it(simulated):
     """Below 15 poses the few-pose cover (the leave-one-pose-out spread) is most of the total sigma
-    on real arms, so the guide predicts it per candidate (plan._jackknife_after, by Woodbury on each
+    on real arms, so the guide predicts it per candidate (guidance._jackknife_after, by Woodbury on each
     sample's downdated system) instead of shrinking it as n / (n + 1) for every candidate alike. The
     prediction must equal the linearised jackknife computed on the graph with the candidate's
     factors added, sample by sample, and candidates must differ in it."""
     from calib3r_graph.io.predictions import split_view_id
-    from calib3r_graph.solver import plan
+    from calib3r_graph.solver import guidance, plan
     from calib3r_graph.solver.jackknife import at_linear_minimum, factor_system, linearised_leave_one_out
 
     root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
@@ -81,7 +81,7 @@ def test_candidate_jackknife_equals_the_linearised_jackknife_of_the_graph_with_i
     sol = session.sol
     assert "cam0" in sol.stats.get("jackknife", {}), up.message
     offsets = factor_system(sol.graph, sol.values)[1]
-    loo = plan._leave_one_out(sol, 6)
+    loo = guidance._leave_one_out(sol, 6)
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
     covs = []
     for g in frames[6:]:
@@ -90,15 +90,15 @@ def test_candidate_jackknife_equals_the_linearised_jackknife_of_the_graph_with_i
                                                    np.random.default_rng(0), keys_new=k_new,
                                                    points=plan.scene_points_by_view(sol))
         assert best is not None
-        D, U = plan._candidate_reduced(sol, fs, vals, offsets, k_new)
-        predicted = plan.jackknife_samples_after(sol, loo, D, U)["cam0"]
-        before = plan.jackknife_samples_after(sol, loo)["cam0"]
+        D, U = guidance._candidate_reduced(sol, fs, vals, offsets, k_new)
+        predicted = guidance.jackknife_samples_after(sol, loo, D, U)["cam0"]
+        before = guidance.jackknife_samples_after(sol, loo)["cam0"]
         graph, values = gtsam.NonlinearFactorGraph(sol.graph), gtsam.Values(sol.values)
         for f in fs:
             graph.add(f)
         for k in k_new:
             if vals.exists(k) and not values.exists(k):
-                plan._insert_like(values, vals, k)
+                guidance._insert_like(values, vals, k)
         H, offs, factors = factor_system(graph, values)
         # the prediction takes the candidate's residual at its expectation, zero: so does this
         factors = factors[:-len(fs)] + [(ks, idx, AtA, 0 * Atb, 0.0) for ks, idx, AtA, Atb, _ in factors[-len(fs):]]
@@ -111,7 +111,7 @@ def test_candidate_jackknife_equals_the_linearised_jackknife_of_the_graph_with_i
             assert np.allclose(dx, direct[frame]["cam0"], rtol=1e-5, atol=1e-9), frame
             moved = max(moved, float(np.abs(dx - before[frame]).max()))
         assert moved > 1e-5  # the candidate changes the samples (1e-5 rad or m)
-        covs.append(plan._jackknife_after(sol, loo, D, U, 6)["cam0"])
+        covs.append(guidance._jackknife_after(sol, loo, D, U, 6)["cam0"])
     assert not np.allclose(covs[0], covs[1], rtol=0.05), "two candidates, one predicted jackknife"
 
 
@@ -119,7 +119,7 @@ def test_candidate_views_are_limited_to_the_viewpoint_change_the_pairs_span(simu
     """A candidate's scene factor is predicted only with views whose optical axis lies within the
     largest angle of the solution's verified pairs: a camera turned past it about the scene's
     centroid overlaps the scene (it is found with no limit) but is predicted to match nothing."""
-    from calib3r_graph.solver import plan
+    from calib3r_graph.solver import guidance, plan
 
     root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
     session = LiveSession(root, predictions="sim", guide=False)
@@ -131,7 +131,7 @@ def test_candidate_views_are_limited_to_the_viewpoint_change_the_pairs_span(simu
     pair_angles = [plan.axis_angle_deg(axes[o.view_a], axes[o.view_b]) for o in sol.observations]
     assert 1.0 < limit == max(pair_angles) < 90.0
     X = sol.ee_T_cam["cam0"]
-    centroid, _ = plan.scene_geometry(sol)
+    centroid, _ = guidance.scene_geometry(sol)
     views = list(sol.base_T_cam)
 
     def candidate(C, max_angle_deg=None):
@@ -145,7 +145,7 @@ def test_candidate_views_are_limited_to_the_viewpoint_change_the_pairs_span(simu
     T0 = sol.base_T_cam[views[0]]
     axis = np.cross(T0.rotation().matrix()[:, 2], [0.0, 0.0, 1.0])
     for turn in np.arange(limit, limit + 40.0, 2.0):
-        C = plan._look_from(T0, centroid, axis, np.radians(turn))
+        C = guidance._look_from(T0, centroid, axis, np.radians(turn))
         if min(plan.axis_angle_deg(axes[v], C.rotation().matrix()[:, 2]) for v in views) > limit + 2.0:
             break
     else:
@@ -174,8 +174,8 @@ def test_stacked_visible_counts_are_each_views_own_projection(simulated):
     """plan.StackedPoints (every view's distinct points in the base frame, one projection per
     candidate, for speed) counts what each view's own projection counts, and candidate_factors picks
     the same overlapping view and visible points with it, at the poses the guide proposes."""
-    from calib3r_graph.solver.plan import StackedPoints, candidate_factors, candidate_poses, distinct_points, \
-        scene_points_by_view
+    from calib3r_graph.solver.guidance import candidate_poses
+    from calib3r_graph.solver.plan import StackedPoints, candidate_factors, distinct_points, scene_points_by_view
 
     session = LiveSession(simulated(seed=5, frames=8, cameras=1, matches_per_pair=300), predictions="sim",
                           guide=False)

@@ -21,7 +21,7 @@ def replay(session: LiveSession, order: str | list, seed: int = 0, on_update=Non
     ``seed`` above 0 from a seeded random one (where a session starts decides much of its first
     frames, so one guided order is one draw); or a list of frame ids (a fixed order, e.g. an
     oracle's; frames it leaves out are not used). Ends with :meth:`LiveSession.finish`."""
-    from calib3r_graph.solver.plan import score_candidates
+    from calib3r_graph.solver.guidance import score_candidates
 
     frames = list(session.poses_known)
     if isinstance(order, (list, tuple)):

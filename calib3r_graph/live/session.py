@@ -323,7 +323,7 @@ class LiveSession:
         return up
 
     def _solve(self, final, skipped, t0) -> Update:
-        from calib3r_graph.solver.plan import candidate_poses, score_candidates
+        from calib3r_graph.solver.guidance import candidate_poses, score_candidates
 
         ds = self._dataset()
         frames = list(ds.base_T_ee)

@@ -56,7 +56,7 @@ class LiveSolution(Solution):
     :meth:`UpdateContext.deferred_graph`): the update itself needs only the graph's robot factors, the
     guidance the whole graph."""
     build_graph = None
-    robot_graph = None  # the graph's robot, rigidity, gauge and prior factors (plan._rescore_systematic)
+    robot_graph = None  # the graph's robot, rigidity, gauge and prior factors (guidance._rescore_systematic)
 
     @property
     def graph(self):

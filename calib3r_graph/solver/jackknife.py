@@ -282,7 +282,7 @@ def linearised_leave_one_out(graph, values, keys, views, system=None, systems=No
     graph's ``Keys``; ``views``: the solved view ids; ``system``: :func:`factor_system` of the graph
     about ``values``, if already computed. ``systems``: a dict to fill with {frame: (the kept
     columns, the Cholesky factor of H_-i on them, dx_-i on them)} for each sample, so that a caller
-    can ask how a sample moves with more information (``solver/plan.py``: a candidate pose's)."""
+    can ask how a sample moves with more information (``solver/guidance.py``: a candidate pose's)."""
     from scipy.linalg import cho_factor, cho_solve  # triangular solves: general ones cost 4x (0.27 of 0.49 s)
 
     H, offsets, factors = system or factor_system(graph, values)
