@@ -191,8 +191,9 @@ def bench_recording(name, args, opt):
     store = Store(cache / "views_real.jsonl")
     # the runs' key: the options and the frontend's and solver's code (an edit re-runs the subsets;
     # features and pair geometries have their own keys in the frontend's cache)
+    frontend = sorted(str(f.relative_to(ROOT)) for f in (ROOT / "calib3r_graph/frontends/pairwise").glob("*.py"))
     code = b"".join((ROOT / f).read_bytes()
-                     for f in ("calib3r_graph/frontends/pairwise.py", "calib3r_graph/frontends/pose_check.py",
+                     for f in (*frontend, "calib3r_graph/frontends/pose_check.py",
                                "calib3r_graph/frontends/pair_selection.py", "calib3r_graph/solver/solve.py",
                                "calib3r_graph/solver/views.py", "calib3r_graph/evaluation/guard.py",
                                "calib3r_graph/solver/jackknife.py", "calib3r_graph/solver/init.py"))

@@ -1,4 +1,4 @@
-"""The pairwise RGB frontend (calib3r_graph/frontends/pairwise.py): its per-view scale alignment
+"""The pairwise RGB frontend (calib3r_graph/frontends/pairwise/): its per-view scale alignment
 and robot checks on constructed pairs, a rendered scene solved from 8 images, a view it cannot
 use, a two-camera rig, and 8 real images of rwhe_kuka_1 against the full recording."""
 
@@ -358,7 +358,7 @@ def test_eight_real_images_agree_with_the_full_recording(tmp_path):
 def test_translation_fit_is_the_least_squares_solution_of_the_full_system():
     """The robot check's rough t_X (_translation_fit, lambdas minimised out) equals the least-squares
     solution of the full system [M_e, -t_e] [t_X; lambda] = -t_A over the pairs, at seeded random pairs."""
-    from calib3r_graph.frontends.pairwise import _translation_fit
+    from calib3r_graph.frontends.pairwise.robot import _translation_fit
 
     rng = np.random.default_rng(4)
     n = 12

@@ -1,5 +1,5 @@
 """The pairwise frontend's faster steps give the same numbers as the straightforward ones they
-replaced (frontends/pairwise.py): the epipolar-band candidates (blocked, row-major), the dense
+replaced (frontends/pairwise/): the epipolar-band candidates (blocked, row-major), the dense
 mutual ratio test (one column max, not the survivors' columns gathered), the sparse mutual ratio
 test (segment reductions, not lexsorts), the RANSAC's stacked hand-eye rotations, and
 the aggregation's cache (a view whose depths come out the same keeps its prediction object). Every
@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from calib3r_graph.frontends import pairwise as pw
+from calib3r_graph.frontends.pairwise import geometry, robot
 from calib3r_graph.io.dataset import opencv_camera
 from calib3r_graph.geometry import hand_eye_rotation
 from factors._lie import skew
@@ -65,10 +66,10 @@ def test_epipolar_band_candidates_are_those_of_the_dense_test():
         R = _random_rotation(rng)
         E = skew(np.array(t) / np.linalg.norm(t)) @ R
         ua, ub = rng.uniform(0, 1280, (n_a, 2)), rng.uniform(0, 960, (n_b, 2))
-        xa, xb = pw._homogeneous_rays(K, ua), pw._homogeneous_rays(K, ub)
+        xa, xb = geometry._homogeneous_rays(K, ua), geometry._homogeneous_rays(K, ub)
         la, lb = xa @ E.T, xb @ E
         for max_px in (2.0, 8.7):
-            got = pw._epipolar_candidates(la, lb, xb, 1000.0, max_px)
+            got = geometry._epipolar_candidates(la, lb, xb, 1000.0, max_px)
             want = _dense_candidates(la, lb, xb, 1000.0, max_px)
             assert _equal(got, want)
             found += len(want[0])
@@ -85,7 +86,7 @@ def test_sparse_mutual_ratio_is_that_of_the_lexsorts_with_ties_and_any_order():
         u = u[rng.permutation(len(u))] if k % 2 else u
         sim = rng.choice(levels, len(u)) if k % 3 else rng.random(len(u)).astype(np.float32)
         i, j = u[:, 0], u[:, 1]
-        assert _equal(pw._sparse_mutual_ratio(i, j, sim, 0.8), _lexsort_mutual_ratio(i, j, sim, 0.8))
+        assert _equal(geometry._sparse_mutual_ratio(i, j, sim, 0.8), _lexsort_mutual_ratio(i, j, sim, 0.8))
 
 
 def _gathered_mutual_ratio(S, ratio):
@@ -119,7 +120,7 @@ def test_dense_mutual_ratio_is_that_of_the_gathered_columns_with_ties():
             B /= np.linalg.norm(B, axis=1, keepdims=True)
             S = A @ B.T
         before = S.copy()
-        got = pw._mutual_ratio(S, 0.8)
+        got = geometry._mutual_ratio(S, 0.8)
         assert np.array_equal(S, before)
         assert _equal(got, _gathered_mutual_ratio(before, 0.8))
         kept += len(got[0])
@@ -130,7 +131,7 @@ def test_stacked_hand_eye_rotations_are_the_one_by_one_ones():
     rng = np.random.default_rng(2)
     alphas, betas = rng.standard_normal((50, 3)), rng.standard_normal((50, 3))
     I, J = rng.integers(0, 50, 300), rng.integers(0, 50, 300)
-    stacked = pw._hand_eye_rotations(alphas[np.c_[I, J]], betas[np.c_[I, J]])
+    stacked = robot._hand_eye_rotations(alphas[np.c_[I, J]], betas[np.c_[I, J]])
     for k in range(len(I)):
         R, _ = hand_eye_rotation(alphas[[I[k], J[k]]], betas[[I[k], J[k]]])
         assert np.array_equal(stacked[k], R)

@@ -1,4 +1,4 @@
-"""A robot pose that disagrees with its image, for the pairwise frontend (frontends/pairwise.py).
+"""A robot pose that disagrees with its image, for the pairwise frontend (frontends/pairwise/).
 
 A view most of whose pairs the robot's motion rejects, while its partners' other pairs pass, is
 the one to blame (:func:`blamed_views`). It is set aside and the other pairs are checked against

@@ -2,7 +2,7 @@
 
 * :class:`RecordedPredictions`: a dataset's own ``predictions/<name>/`` (a simulator's, a network's
   run offline, an RGB-D frontend's): the subset of the frames so far.
-* :class:`IncrementalPairwise`: the pairwise RGB frontend (``frontends/pairwise.py``) run as frames
+* :class:`IncrementalPairwise`: the pairwise RGB frontend (``frontends/pairwise/``) run as frames
   arrive. Its public steps are called on what is new only: features of the new frame's images
   (``features_for``), two-view geometry of the new pairs (``pair_geometries``), both kept in memory
   (and on disk with ``cache_dir``). The new pairs are the batch frontend's pair selection
