@@ -169,6 +169,8 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
     since its linearisation changed). A kept factor moved nowhere with its own weights is itself."""
     from calib3r_graph.live import linearisation
 
+    weight_tol = linearisation.WEIGHT_TOL  # (before the exact replay sets it to 0)
+
     def replay(exact):
         if exact:
             monkeypatch.setattr(linearisation, "DRIFT_SIGMAS", 0.0)
@@ -176,16 +178,19 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
             monkeypatch.setattr(live_update, "WHITENING_TOL", 0.0)
         counts, own = [], live_update.scene_linearisation
         monkeypatch.setattr(live_update, "scene_linearisation", lambda *a: counts.append(1) or own(*a))
+        tols, moved = [], linearisation.PairLinearisation.moved  # the weights rule each offer was judged by
+        monkeypatch.setattr(linearisation.PairLinearisation, "moved", lambda self, *a, **k: tols.append(
+            a[7] if len(a) > 7 else k.get("weight_tol", linearisation.WEIGHT_TOL)) or moved(self, *a, **k))
         session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
                               guide=False)
         out = []
         for f in session.poses_known:
-            n = len(counts)
+            n, t = len(counts), len(tols)
             up = session.add_frame(f)
             if up.ee_T_cam and not up.message.startswith("waiting"):
                 C = np.asarray(session.sol.covariance["cam0"])
                 out.append((len(up.frames), gtsam_pose(up.ee_T_cam["cam0"]), C, len(counts) - n,
-                            len(session.sol.observations)))
+                            len(session.sol.observations), set(tols[t:])))
         return out, session
 
     kept, session = replay(exact=False)
@@ -207,10 +212,17 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
         w = c.w0.copy()
         w[: len(w) // 10] *= 0.5  # weights that moved past WEIGHT_TOL: not this factor any more
         assert c.moved(o, w, c.scale0, c.sigmas, values, keys, corr) is None
+        # without the weights rule (engine.KEEP_WEIGHTS_FROM poses on) the factor keeps its own weights
+        kept_w = c.moved(o, w, c.scale0, c.sigmas, values, keys, corr, weight_tol=None)
+        assert kept_w is not None and all(np.array_equal(x, y) for x, y in zip(kept_w[:3], m[:3]))
         checked += 1
     assert checked >= 40, checked
     exact, _ = replay(exact=True)
     assert [k[0] for k in kept] == [e[0] for e in exact]
+    # the weights rule below KEEP_WEIGHTS_FROM poses, none from there on (the last update is solve's own)
+    assert all(k[5] <= {weight_tol} for k in kept if k[0] < live_engine.KEEP_WEIGHTS_FROM), \
+        str([(k[0], k[5]) for k in kept])
+    assert {None} == set().union(*(k[5] for k in kept[:-1] if k[0] >= live_engine.KEEP_WEIGHTS_FROM))
     late = [(k, e) for k, e in zip(kept, exact) if k[0] >= 10]
     assert len(late) >= 5
     # at least 40 % of the pair linearisations saved from 10 frames on (measured: 49 %; only an update's

@@ -15,8 +15,11 @@ scale0`` (the noise calibration's ``1 / (sigma0^2 kappa)``, which every whitened
 square root), while
 
 - its observations and the two point sigmas of its whitening are the same;
-- the weights given now are within ``WEIGHT_TOL`` of ``w0`` (``sum |w - w0| <= WEIGHT_TOL sum w0``):
-  the factor then holds the pair's information to that fraction;
+- below ``engine.KEEP_WEIGHTS_FROM`` poses, the weights given now are within ``WEIGHT_TOL`` of ``w0``
+  (``sum |w - w0| <= WEIGHT_TOL sum w0``): the factor then holds the pair's information to that
+  fraction. From there on it keeps ``w0``, robust weights lagged by the updates it is kept for, as
+  every update's are lagged by one (the engine's comment on ``KEEP_WEIGHTS_FROM`` gives the
+  measurements);
 - the linear model predicts an rms change of the pair's whitened match residuals since ``x0`` below
   ``DRIFT_SIGMAS`` (``delta^T A^T A delta <= DRIFT_SIGMAS^2 n``, n its matches of non-zero weight):
   a relative motion of about ``DRIFT_SIGMAS`` depth sigmas (1 %), so the Jacobian is right to a few
@@ -24,7 +27,8 @@ square root), while
 
 On rwhe_kuka_1 (a random order, seed 0) 2088 kept factors were offered: 1067 failed the weights
 rule (the median weights had moved by 1.2 % since ``x0``), 21 the drift rule (median drift 0.11),
-206 had new observations, and 794 were reused. What the kept factor misses is the part of the
+206 had new observations, and 794 were reused (with the weights rule at every pose count, before
+``KEEP_WEIGHTS_FROM``). What the kept factor misses is the part of the
 pair's nonlinearity its motion since ``x0`` brings: after a large step the factor anew shows a
 remainder the kept one cannot (up to 0.2 sigma of a view's variable on the simulator's replay), which
 the pair's next relinearisation takes up.
@@ -66,13 +70,14 @@ class PairLinearisation:
     btb: float
     term: tuple | None = None  # (J^T dE, dE^T dE, dE^T e) of camera_model.pair_sensitivities at x0, () if none
 
-    def moved(self, o, w, scale, sigmas, values, keys, with_correction: bool):
+    def moved(self, o, w, scale, sigmas, values, keys, with_correction: bool, weight_tol: float | None = WEIGHT_TOL):
         """(A^T A, A^T b, b^T b, delta, scale / scale0) of this factor moved to ``values``, or None
-        where it no longer holds (the module's three rules)."""
+        where it no longer holds (the module's three rules; ``weight_tol`` None: its weights ``w0``
+        are kept whatever the weights given now, as from ``engine.KEEP_WEIGHTS_FROM`` poses)."""
         if o is not self.obs or sigmas != self.sigmas or len(w) != len(self.w0):
             return None
         total = float(self.w0.sum())
-        if not total > 0 or float(np.abs(w - self.w0).sum()) > WEIGHT_TOL * total:
+        if not total > 0 or (weight_tol is not None and float(np.abs(w - self.w0).sum()) > weight_tol * total):
             return None
         delta = _delta(self.x0, point(o, values, keys, with_correction))
         if len(delta) != len(self.Atb) or \

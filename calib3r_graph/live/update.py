@@ -21,6 +21,7 @@ import numpy as np
 
 from calib3r_graph.errors import SolveError
 from calib3r_graph.io.predictions import split_view_id
+from calib3r_graph.live import linearisation
 from calib3r_graph.live.linearisation import PairLinearisation, point
 from calib3r_graph.solver.camera_model import add_camera_model, camera_parameters, pair_sensitivities
 from calib3r_graph.solver.graph import (MIN_FACTOR_MATCHES, add_depth_correction_priors, add_robot_factors,
@@ -86,6 +87,9 @@ class UpdateContext:
         # least well, and the schedule is to be solve's own (tests/test_live_few_poses.py: a re-run
         # with kept factors ended 0.14 sigma from solve's result, against 0.1 allowed)
         self.fresh = False
+        # the weights rule of a kept linearisation (linearisation.WEIGHT_TOL; None: off, the factor keeps
+        # the weights it was linearised with, engine.KEEP_WEIGHTS_FROM)
+        self.weight_tol = linearisation.WEIGHT_TOL
         self.linearised_at = None  # the values the last linear system was linearised at
         self.dropped = {}  # view -> why drop_weak left it out of this update
         self._camera_lins = None  # what the last linear system's camera-model terms are computed from
@@ -264,7 +268,7 @@ class UpdateContext:
             pair = (o.view_a, o.view_b)
             kept = self.kept.get(pair)  # the pair's last linearisation, moved here where it holds (linearisation.py)
             m = None if self.fresh or kept is None or (thetas and kept.term is None) else kept.moved(
-                o, w, scale, sigmas, values, self.keys, corr)
+                o, w, scale, sigmas, values, self.keys, corr, self.weight_tol)
             if m is not None:
                 k = scene_keys(o, self.keys, noise)
                 idx = columns(k)
