@@ -21,7 +21,7 @@ import numpy as np
 
 from calib3r_graph.errors import SolveError
 from calib3r_graph.io.predictions import split_view_id
-from calib3r_graph.live import linearisation
+import calib3r_graph.live.linearisation as linearisation
 from calib3r_graph.live.linearisation import PairLinearisation, point
 from calib3r_graph.solver.camera_model import add_camera_model, camera_parameters, pair_sensitivities
 from calib3r_graph.solver.graph import (MIN_FACTOR_MATCHES, add_depth_correction_priors, add_robot_factors,
