@@ -179,8 +179,7 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
         counts, own = [], live_update.scene_linearisation
         monkeypatch.setattr(live_update, "scene_linearisation", lambda *a: counts.append(1) or own(*a))
         tols, moved = [], linearisation.PairLinearisation.moved  # the weights rule each offer was judged by
-        monkeypatch.setattr(linearisation.PairLinearisation, "moved", lambda self, *a, **k: tols.append(
-            a[7] if len(a) > 7 else k.get("weight_tol", linearisation.WEIGHT_TOL)) or moved(self, *a, **k))
+        monkeypatch.setattr(linearisation.PairLinearisation, "moved", lambda self, *a: tols.append(a[7]) or moved(self, *a))
         session = LiveSession(simulated(seed=5, frames=16, cameras=1, matches_per_pair=200), predictions="sim",
                               guide=False)
         out = []
@@ -205,15 +204,15 @@ def test_kept_linearisations_and_whitenings_save_most_pairs_and_leave_the_update
         if corr:
             values.update(keys.correction(a), np.asarray(c.x0[4]))
             values.update(keys.correction(b), np.asarray(c.x0[5]))
-        m = c.moved(o, c.w0, c.scale0, c.sigmas, values, keys, corr)
+        m = c.moved(o, c.w0, c.scale0, c.sigmas, values, keys, corr, weight_tol)
         assert m is not None and np.abs(m[3]).max() < 1e-12 and m[4] == 1.0
         assert np.array_equal(m[0], c.AtA) and np.allclose(m[1], c.Atb, rtol=1e-9, atol=1e-9 * np.abs(c.Atb).max())
         assert np.isclose(m[2], c.btb, rtol=1e-9)
         w = c.w0.copy()
         w[: len(w) // 10] *= 0.5  # weights that moved past WEIGHT_TOL: not this factor any more
-        assert c.moved(o, w, c.scale0, c.sigmas, values, keys, corr) is None
+        assert c.moved(o, w, c.scale0, c.sigmas, values, keys, corr, weight_tol) is None
         # without the weights rule (engine.KEEP_WEIGHTS_FROM poses on) the factor keeps its own weights
-        kept_w = c.moved(o, w, c.scale0, c.sigmas, values, keys, corr, weight_tol=None)
+        kept_w = c.moved(o, w, c.scale0, c.sigmas, values, keys, corr, None)
         assert kept_w is not None and all(np.array_equal(x, y) for x, y in zip(kept_w[:3], m[:3]))
         checked += 1
     assert checked >= 40, checked

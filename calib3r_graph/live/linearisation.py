@@ -70,10 +70,11 @@ class PairLinearisation:
     btb: float
     term: tuple | None = None  # (J^T dE, dE^T dE, dE^T e) of camera_model.pair_sensitivities at x0, () if none
 
-    def moved(self, o, w, scale, sigmas, values, keys, with_correction: bool, weight_tol: float | None = WEIGHT_TOL):
+    def moved(self, o, w, scale, sigmas, values, keys, with_correction: bool, weight_tol: float | None):
         """(A^T A, A^T b, b^T b, delta, scale / scale0) of this factor moved to ``values``, or None
-        where it no longer holds (the module's three rules; ``weight_tol`` None: its weights ``w0``
-        are kept whatever the weights given now, as from ``engine.KEEP_WEIGHTS_FROM`` poses)."""
+        where it no longer holds (the module's three rules). ``weight_tol``: the weights rule's bound
+        (``WEIGHT_TOL``, as the caller reads it; None: its weights ``w0`` are kept whatever the weights
+        given now, as from ``engine.KEEP_WEIGHTS_FROM`` poses)."""
         if o is not self.obs or sigmas != self.sigmas or len(w) != len(self.w0):
             return None
         total = float(self.w0.sum())
