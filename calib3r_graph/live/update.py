@@ -431,7 +431,7 @@ class UpdateContext:
             Hinv = np.linalg.inv(H)
         except np.linalg.LinAlgError:
             raise SolveError("the calibration is not observable from these frames yet") from None
-        self.information = (Hinv, offsets)
+        self.information = (Hinv, offsets, H)  # (H too: the guidance's exact re-scoring needs it)
         block = lambda k: Hinv[offsets[k][0]:offsets[k][0] + offsets[k][1], offsets[k][0]:offsets[k][0] + offsets[k][1]]
         covariance_model = {c: block(keys.hand_eye(c)) for c in cameras}
         if not all(np.all(np.isfinite(C)) and np.linalg.eigvalsh(0.5 * (C + C.T))[0] > 0
