@@ -431,22 +431,18 @@ def _speed(rs, batch_cpu_s) -> dict:
                                                                if "frontend_cpu_s" in s])}
 
 
-def plot(name, runs, path):
-    import matplotlib
+COLOURS = {"recorded": "C0", "guided": "C3", "random": "C7", "oracle": "C2", "sigma_oracle": "C4", "file": "C1"}
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    colours = {"recorded": "C0", "guided": "C3", "random": "C7", "oracle": "C2", "sigma_oracle": "C4",
-               "file": "C1"}
+def _draw(axes, runs, legend=True):
+    """Error to the full result and largest total sigma against frames, one line per run, on two axes."""
     for r in runs:
         xs = [s["frames"] for s in r["steps"][:-1] if "cameras" in s]
         if not xs:
             continue
         err = [max(c["error_mm"] for c in s["cameras"].values()) for s in r["steps"][:-1] if "cameras" in s]
         sig = [max(c["sigma_mm"] for c in s["cameras"].values()) for s in r["steps"][:-1] if "cameras" in s]
-        kw = {"color": colours[r["order"]], "alpha": 0.35 if r["order"] == "random" else 1.0, "lw": 1}
+        kw = {"color": COLOURS[r["order"]], "alpha": 0.35 if r["order"] == "random" else 1.0, "lw": 1}
         label = r["order"] if r["seed"] == 0 else None  # one legend entry per order
         axes[0].semilogy(xs, err, label=label, **kw)
         axes[1].semilogy(xs, sig, label=label, **kw)
@@ -454,11 +450,61 @@ def plot(name, runs, path):
         ax.set_xlabel("frames")
         ax.set_title(what)
         ax.axhline(NEAR_MM if "error" in what else 1.0, color="k", lw=0.5, ls="--")
-        ax.legend()
+        if legend:
+            ax.legend()
+
+
+def plot(name, runs, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    _draw(axes, runs)
     fig.suptitle(f"live replay: {name}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def plot_all(result, path):
+    """One row per recording (error and sigma against frames, the three orders): the README's figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recs = list(result["recordings"].items())
+    fig, axes = plt.subplots(len(recs), 2, figsize=(10, 2.6 * len(recs)), squeeze=False)
+    for i, (name, rec) in enumerate(recs):
+        _draw(axes[i], rec["runs"], legend=i == 0)
+        for ax in axes[i]:
+            ax.set_title(f"{name}: {ax.get_title()}", fontsize=9)
+            if i < len(recs) - 1:
+                ax.set_xlabel("")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def readme_table(result) -> str:
+    """One row per recording, the figures the README shows: frames to 3 mm / 0.2 deg (medians), the
+    lowest 3-sigma coverage of the three orders, all updates over the replay's own solve (CPU) and
+    the median update with the frontend from 20 frames (wall)."""
+    def per(rec, key, f, suffix=""):
+        return " / ".join(fmt(rec["summary"].get(o, {}).get(key), f) + suffix
+                          for o in ("recorded", "guided", "random"))
+
+    lines = ["| recording (frames) | frames to 3 mm / 0.2°, recorded / guided / random | lowest 3σ coverage | "
+             "all updates / own `solve` (CPU) | median update with frontend (s) |",
+             "|---|---|---|---|---|"]
+    for name, rec in result["recordings"].items():
+        cov = [s["coverage_3sigma"] for s in rec["summary"].values() if s.get("coverage_3sigma") is not None]
+        lines.append(f"| {name} ({rec['frames']}) | {per(rec, 'frames_median', '.0f')} | "
+                     f"{fmt(min(cov) if cov else None, '.0%')} | {per(rec, 'updates_cpu_over_finish_cpu', '.2f', '×')} | "
+                     f"{per(rec, 'update_with_frontend_median_s_from_20', '.2f')} |")
+    return "\n".join(lines) + "\n"
 
 
 def main():
@@ -546,6 +592,7 @@ def main():
         (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "live_real.md").write_text(table(result))
+    plot_all(result, out / "live_real_all.png")
     print(table(result))
 
 
@@ -575,6 +622,7 @@ def merge(sources, out: Path):
         plot(name, rec["runs"], out / f"live_real_{name}.png")
     (out / "live_real.json").write_text(json.dumps(result, indent=1, default=float))
     (out / "live_real.md").write_text(table(result))
+    plot_all(result, out / "live_real_all.png")
     print(table(result))
 
 
@@ -667,6 +715,7 @@ def table(result) -> str:
                 cells.append(f"{w['median']:.0f}" + (f" ({w['median'] / r0:.2f})" if r0 else "") +
                              (f", never {w['never']}" if w["never"] else ""))
             lines.append(f"| {name} | {sig[0]:.1f} mm / {sig[1]:.3f}° | {order} | {s['runs']} | " + " | ".join(cells) + " |")
+    lines += ["", "The README's table (medians; recorded / guided / random):", "", readme_table(result).rstrip("\n")]
     return "\n".join(lines) + "\n"
 
 
