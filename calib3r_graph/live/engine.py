@@ -76,8 +76,16 @@ from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions
 
 # A total sigma beyond these is no calibration yet (a flange camera's mount offset is about 0.1 m; a
 # 10 degree sigma is no rotation estimate): the update says "not observable yet" and the next starts
-# cold rather than warm from it.
+# cold rather than warm from it (require_calibration).
 MAX_SIGMA_MM, MAX_SIGMA_DEG = 100.0, 10.0
+# Nor is a metric scale whose sigma exceeds this fraction of it: its 2-sigma interval reaches zero.
+# Measured (docs/live-notes.md, "A collapsed cold start"): rwhe_kuka_2's random order 15 started cold at
+# 4 frames (two of them without a usable pair) in a degenerate minimum, three cameras at one centre
+# and their views' scenes shrunk onto it, ee_T_cam 392 mm from the full result with a 28 mm sigma and
+# the scale 0.00045 +- 0.032; every later update started warm from it and stayed 403-414 mm off for
+# 20 frames (solve on those 4 frames says "not observable"). In 60 other replays of the four
+# recordings the largest ratio was 0.27 (rwhe_kuka_2 at 3 frames), most below 0.01.
+MAX_SCALE_REL = 0.5
 # A one-step update (from JACKKNIFE_BELOW poses) that moves ee_T_cam by more than this many of the
 # previous update's total sigma is re-run with solve's schedule (Engine._moved_far)
 MOVE_SIGMAS = 3.0
@@ -147,17 +155,11 @@ class Engine:
         A SolveError (not observable yet) leaves no state behind: the next update starts cold."""
         try:
             sol = self._update(base_T_ee, preds)
+            self._last_cov = {c: np.asarray(C) for c, C in sol.covariance.items()}
+            require_calibration(sol)
         except SolveError:
             self.state = None
             raise
-        self._last_cov = {c: np.asarray(C) for c, C in sol.covariance.items()}
-        for c, X in sol.ee_T_cam.items():
-            C = sol.covariance[c]
-            sig_mm = np.sqrt(np.linalg.eigvalsh(C[3:, 3:])[-1]) * 1e3
-            sig_deg = np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3])[-1]))
-            if not (sig_mm < MAX_SIGMA_MM and sig_deg < MAX_SIGMA_DEG):
-                self.state = None
-                raise SolveError(f"{c}: not observable from these frames yet (sigma {sig_mm:.3g} mm, {sig_deg:.3g} deg)")
         return sol
 
     def _update(self, base_T_ee: dict, preds) -> Solution:
@@ -415,6 +417,22 @@ class Engine:
         # per pair: its RANSAC Sim(3) (s, R, t, inliers) where a view was placed now; None: both were
         # placed before (or its RANSAC found nothing)
         return state, [sim if isinstance(sim, tuple) else None for sim in inliers]
+
+
+def require_calibration(sol):
+    """Raise SolveError ("not observable from these frames yet") where an update's result is no
+    calibration yet: a camera's largest total sigma beyond MAX_SIGMA_MM or MAX_SIGMA_DEG, or its
+    metric scale not positive or with a sigma beyond MAX_SCALE_REL of it."""
+    for c, X in sol.ee_T_cam.items():
+        C = sol.covariance[c]
+        sig_mm = np.sqrt(np.linalg.eigvalsh(C[3:, 3:])[-1]) * 1e3
+        sig_deg = np.degrees(np.sqrt(np.linalg.eigvalsh(C[:3, :3])[-1]))
+        if not (sig_mm < MAX_SIGMA_MM and sig_deg < MAX_SIGMA_DEG):
+            raise SolveError(f"{c}: not observable from these frames yet (sigma {sig_mm:.3g} mm, {sig_deg:.3g} deg)")
+        lam, sig_lam = sol.metric_scale[c]
+        if not (lam > 0 and sig_lam < MAX_SCALE_REL * lam):
+            raise SolveError(f"{c}: the metric scale is not observable from these frames yet ({lam:.3g} ± "
+                             f"{sig_lam:.2g} m per depth unit)")
 
 
 def _calibration_of(sol) -> tuple:
