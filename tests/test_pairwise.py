@@ -375,3 +375,26 @@ def test_translation_fit_is_the_least_squares_solution_of_the_full_system():
         assert np.allclose(fit(idx), full, rtol=0, atol=1e-10)
     batch = np.array([rng.choice(n, 3, replace=False) for _ in range(20)])
     assert np.allclose(fit(batch), [fit(b) for b in batch], rtol=0, atol=1e-12)
+
+
+def test_cached_arrays_are_read_one_thread_at_a_time(tmp_path):
+    """np.load parses array headers with ast.literal_eval, which CPython 3.11 cannot run on two
+    threads at once (python/cpython#106905: "SystemError: AST constructor recursion depth mismatch",
+    which ended a benchmark reading cached features on the frontend's two threads). The frontend's
+    cache reads (options.read_npz) hold one lock: a read waits while another holds it, then returns
+    every array whole."""
+    import threading
+
+    from calib3r_graph.frontends.pairwise import options
+
+    path = tmp_path / "f.npz"
+    np.savez(path, uv=np.arange(6.0).reshape(3, 2), kp_id=np.arange(3))
+    got = {}
+    reader = threading.Thread(target=lambda: got.update(options.read_npz(path)))
+    with options._NPZ_LOCK:
+        reader.start()
+        reader.join(0.3)
+        assert reader.is_alive() and not got  # waiting for the lock
+    reader.join(5)
+    assert not reader.is_alive()
+    assert np.array_equal(got["uv"], np.arange(6.0).reshape(3, 2)) and np.array_equal(got["kp_id"], np.arange(3))

@@ -9,7 +9,7 @@ import numpy as np
 from calib3r_graph.errors import InputError
 from calib3r_graph.frontends.common import load_gray, undistort_maps
 from calib3r_graph.frontends.pairwise.options import (Features, PairwiseOptions, _digest, _image_key,
-                                                      _map_with_progress)
+                                                      _map_with_progress, read_npz)
 from calib3r_graph.io.output import atomic_savez
 from calib3r_graph.io.predictions import split_view_id
 
@@ -53,8 +53,8 @@ def features_for(ds, views, opt: PairwiseOptions, cache_dir=None, progress=True,
         if cache is not None:
             path = cache / f"{cam_name}_{frame}_{_digest([_image_key(ds, cam, frame), opt.feature_key()])}.npz"
             if path.is_file():
-                with np.load(path) as z:
-                    return vid, Features(z["uv"], z["desc"].astype(np.float32), z["kp_id"])
+                z = read_npz(path)
+                return vid, Features(z["uv"], z["desc"].astype(np.float32), z["kp_id"])
         f = extract_features(ds, cam, frame, opt)
         if path is not None:
             atomic_savez(path, uv=f.uv, desc=f.desc.astype(np.float16), kp_id=f.kp_id)

@@ -12,7 +12,7 @@ import numpy as np
 
 from factors._lie import skew
 from calib3r_graph.frontends.pairwise.options import (Features, PairGeometry, PairwiseOptions, _digest, _image_key,
-                                                      _map_with_progress)
+                                                      _map_with_progress, read_npz)
 from calib3r_graph.io.output import atomic_savez
 from calib3r_graph.io.predictions import split_view_id
 
@@ -264,10 +264,10 @@ def pair_geometries(ds, feats: dict, pairs, opt: PairwiseOptions, cache_dir=None
             key = _digest([_image_key(ds, ds.cameras[ca], fa_), _image_key(ds, ds.cameras[cb], fb_), opt.pair_key()])
             path = cache / f"{ca}_{fa_}__{cb}_{fb_}_{key}.npz"
             if path.is_file():
-                with np.load(path) as z:
-                    if "none" in z.files:
-                        return ab, None
-                    return ab, PairGeometry(a, b, *(z[k] for k in _PAIR_ARRAYS), json.loads(str(z["stats"])))
+                z = read_npz(path)
+                if "none" in z:
+                    return ab, None
+                return ab, PairGeometry(a, b, *(z[k] for k in _PAIR_ARRAYS), json.loads(str(z["stats"])))
         g = two_view_geometry(feats[a], feats[b], K[a], K[b], opt, a, b)
         if path is not None:
             if g is None:

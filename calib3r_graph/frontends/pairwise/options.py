@@ -5,6 +5,7 @@ with a progress bar."""
 
 import hashlib
 import json
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -92,6 +93,21 @@ def _image_key(ds, cam, frame) -> dict:
     st = p.stat()
     return {"image": str(p.resolve()), "size": st.st_size, "mtime": int(st.st_mtime), "params": list(cam.params),
             "w": cam.width, "h": cam.height}
+
+
+# np.load parses each array's header with ast.literal_eval, and CPython 3.11's AST constructor keeps
+# its recursion depth per interpreter, not per thread: two threads parsing at once can raise
+# "SystemError: AST constructor recursion depth mismatch" (python/cpython#106905). It ended a
+# benchmark here, reading cached features on the frontend's two threads (2026-12-07; the first time
+# in the project's many cached runs, and 40,000 reads on two threads in a loop did not repeat it).
+# The cache reads take this lock; the work between them stays parallel.
+_NPZ_LOCK = threading.Lock()
+
+
+def read_npz(path) -> dict:
+    """{name: array} of an .npz file, read whole under a lock shared by the frontend's threads."""
+    with _NPZ_LOCK, np.load(path) as z:
+        return {k: z[k] for k in z.files}
 
 
 def _map_with_progress(one, items, desc, progress, workers) -> dict:
