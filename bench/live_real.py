@@ -501,7 +501,7 @@ def readme_table(result) -> str:
              "|---|---|---|---|---|"]
     for name, rec in result["recordings"].items():
         cov = [s["coverage_3sigma"] for s in rec["summary"].values() if s.get("coverage_3sigma") is not None]
-        lines.append(f"| {name} ({rec['frames']}) | {per(rec, 'frames_median', '.0f')} | "
+        lines.append(f"| {name} ({rec['frames']}) | {per(rec, 'frames_median', 'g')} | "
                      f"{fmt(min(cov) if cov else None, '.0%')} | {per(rec, 'updates_cpu_over_finish_cpu', '.2f', '×')} | "
                      f"{per(rec, 'update_with_frontend_median_s_from_20', '.2f')} |")
     return "\n".join(lines) + "\n"
