@@ -5,6 +5,7 @@ calib3r_graph.errors); tracebacks only with --debug.
 """
 
 import argparse
+import dataclasses
 import logging
 import os
 import sys
@@ -165,25 +166,56 @@ def _solve_dataset(args):
 
 
 def cmd_plan(args):
-    from calib3r_graph.io.dataset import read_robot_poses
+    """The next flange poses to record, ranked by the largest total sigma expected after each (the live
+    guide's objective, solver/guidance.py): the --candidates file's, or without it the guide's own."""
+    from calib3r_graph.io.dataset import load_dataset, read_robot_poses, write_robot_poses
     from calib3r_graph.io.output import atomic_write_json
-    from calib3r_graph.solver.plan import largest_sigmas, rank_candidates
+    from calib3r_graph.io.results import uncertainty_report
+    from calib3r_graph.live.cli import parse_box
+    from calib3r_graph.solver.guidance import candidate_poses, score_candidates
 
-    from calib3r_graph.io.dataset import load_dataset
+    def largest(sigmas):  # {camera: sigma_ee_frame} -> the largest (mm, deg) over cameras and ee axes
+        return (max(s[a] for s in sigmas.values() for a in ("x_mm", "y_mm", "z_mm")),
+                max(s[a] for s in sigmas.values() for a in ("rx_deg", "ry_deg", "rz_deg")))
 
     unit = load_dataset(args.dataset, skip_missing=args.skip_missing).robot_unit
-    candidates = read_robot_poses(Path(args.candidates), unit, "the --candidates file")  # fail before solving
+    box = parse_box(args.box)
+    candidates = None
+    if args.candidates:  # read before solving: a bad file fails at once
+        candidates = read_robot_poses(Path(args.candidates), unit, "the --candidates file")
     ds, preds, opt, sol = _solve_dataset(args)
-    ranked = rank_candidates(ds, preds, sol, opt.noise, candidates)
-    t_now, r_now = largest_sigmas([np.asarray(c) for c in (sol.covariance_model or sol.covariance).values()])
-    print(f"now: largest sigma {t_now:.3f} mm, {r_now:.4f} deg ({len(sol.base_T_cam)} views)")
-    print(f"{'rank':>4} {'candidate':>10} {'gain (nats)':>11} {'sigma t after':>14} {'sigma r after':>14}  overlaps")
+    # the robot factors' noise as the solve calibrated it (its robot variance factor)
+    robot_mm, robot_deg = sol.stats["noise_calibration"]["robot_sigma_used"]
+    noise = dataclasses.replace(opt.noise, robot_sigma_mm=robot_mm, robot_sigma_deg=robot_deg)
+    if candidates is None:
+        cands = [(kind, E, None) for kind, E in
+                 candidate_poses(sol, ds.base_T_ee, args.margin_m, box, np.random.default_rng(0))]
+    else:
+        cands = [("file", E, frame) for frame, E in candidates.items()]
+    ranked = score_candidates(sol, preds, noise, ds.base_T_ee, cands, args.target_mm, args.target_deg)
+    for i, c in enumerate(ranked, 1):  # the guide's own: next01, next02, ... best first, as `live` names them
+        c.frame = c.frame or f"next{i:02d}"
+    t_now, r_now = largest({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"]
+                            for c, X in sol.ee_T_cam.items()})
+    print(f"now: largest total sigma {t_now:.3f} mm, {r_now:.4f} deg ({len(ds.base_T_ee)} poses; target "
+          f"{args.target_mm} mm, {args.target_deg} deg)")
+    print(f"{'rank':>4} {'candidate':>10} {'kind':>8} {'sigma t after':>14} {'sigma r after':>14} {'points':>7}")
+    rows = []
     for i, c in enumerate(ranked, 1):
-        print(f"{i:4d} {c.frame:>10} {c.information_gain_nats:11.3f} {c.sigma_t_mm_after:11.3f} mm "
-              f"{c.sigma_r_deg_after:10.4f} deg  {c.overlapping_view or '-'} ({c.visible_points} points)")
-    out = _out_dir(args) / "plan.json"
-    atomic_write_json(out, {"candidates_file": str(args.candidates), "ranking": [vars(c) for c in ranked]})
-    print(f"wrote {out}")
+        t_mm, r_deg = largest(c.sigma_after)
+        if i <= args.next:
+            print(f"{i:4d} {c.frame:>10} {c.kind:>8} {t_mm:11.3f} mm {r_deg:10.4f} deg {c.visible_points:7d}")
+        rows.append({"frame": c.frame, "kind": c.kind, "base_T_ee": c.base_T_ee.matrix().tolist(),
+                     "objective_after": c.objective_after, "objective_gain": c.gain, "sigma_after": c.sigma_after,
+                     "largest_sigma_after_mm": t_mm, "largest_sigma_after_deg": r_deg,
+                     "visible_points": c.visible_points})
+    out = _out_dir(args)
+    atomic_write_json(out / "plan.json", {"candidates_file": str(args.candidates) if args.candidates else None,
+                                          "target_mm_deg": [args.target_mm, args.target_deg],
+                                          "now_largest_sigma_mm_deg": [t_now, r_now], "ranking": rows})
+    write_robot_poses(out / "next_poses.csv", {c.frame: c.base_T_ee for c in ranked[:args.next]}, unit)
+    print(f"wrote {out / 'plan.json'}, {out / 'next_poses.csv'} (the best {min(args.next, len(ranked))}, as "
+          "robot_poses.csv)")
 
 
 def cmd_predict(args):
@@ -565,9 +597,15 @@ def build_parser():
     _add_dense_args(s)
     s.set_defaults(func=cmd_solve)
 
-    pl = sub.add_parser("plan", help="rank candidate robot poses by expected information gain")
+    pl = sub.add_parser("plan", help="the next robot poses to record, ranked by the total sigma expected after each")
     _add_solve_args(pl)
-    pl.add_argument("--candidates", required=True, help="CSV like robot_poses.csv (frame,x,y,z,qx,qy,qz,qw)")
+    pl.add_argument("--candidates", help="CSV like robot_poses.csv (frame,x,y,z,qx,qy,qz,qw): rank these "
+                                         "(default: the live guide's candidates, generated from the solution)")
+    pl.add_argument("--target-mm", type=float, default=1.0, help="the target the ranking's objective is scaled by")
+    pl.add_argument("--target-deg", type=float, default=0.1, help="... and this")
+    pl.add_argument("--next", type=int, default=5, help="how many to print and write to next_poses.csv")
+    pl.add_argument("--margin-m", type=float, default=0.05, help="grow the visited region by this for the candidates")
+    pl.add_argument("--box", help="x0,y0,z0,x1,y1,z1: candidate flange positions inside this box (base frame, m)")
     pl.set_defaults(func=cmd_plan)
 
     pr = sub.add_parser("predict", help="make predictions/<name>/ from the dataset's images (and depth)")

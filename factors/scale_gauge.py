@@ -25,7 +25,11 @@ def scale_gauge_error(_unused, this: gtsam.CustomFactor, values: gtsam.Values, j
         jacobians[0] = np.array([[1.0 / lam]])
         for i, s_i in enumerate(s):
             jacobians[i + 1] = np.array([[-1.0 / (n * s_i)]])
-    return np.array([np.log(lam) - np.mean(np.log(s))])
+    # A trial step of LM may take a scale to zero or below: the error is then NaN, without numpy's
+    # RuntimeWarning on the user's terminal, and LM rejects the step (a NaN cost is never lower), so
+    # the scales stay positive from their positive start (solver/init.py refuses any other).
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.array([np.log(lam) - np.mean(np.log(s))])
 
 
 def make_scale_gauge_factor(keys, noise) -> gtsam.CustomFactor:

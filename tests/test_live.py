@@ -174,6 +174,36 @@ def test_guided_replay_uses_each_frame_once(simulated, order):
     assert sorted(frames) == sorted(load_dataset(root).frames) and len(set(frames)) == len(frames)
 
 
+def test_a_rig_of_two_cameras_is_calibrated_live_and_ends_at_the_batch_solve(simulated):
+    """A rigid rig: every update with a calibration has each camera's ee_T_cam, whose total sigma
+    covers the simulated truth (3 sigma on every ee axis), the guidance proposes poses, and the
+    replay ends at solve on the same frames and predictions."""
+    from calib3r_graph.io.dataset import load_ground_truth
+
+    root = simulated(seed=11, frames=8, cameras=2, matches_per_pair=200)
+    ds = load_dataset(root)
+    truth = load_ground_truth(root)["hand_eye"]
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    ref = solve(ds, preds, SolveOptions(noise=NoiseOptions(pixel_sigma_px=preds.info["match_noise_px"]),
+                                        progress=False))
+    session = LiveSession(root, predictions="sim", target_mm=0.01, target_deg=0.001)  # never done: always guided
+    ups = [u for u in replay(session, "guided") if u.ee_T_cam]
+    assert len(ups) >= 6
+    for u in ups:
+        assert set(u.ee_T_cam) == {"cam0", "cam1"}
+        for c, T in u.ee_T_cam.items():
+            X = gtsam.Pose3(np.array(T))
+            d = gtsam.Pose3.Logmap(truth[c].between(X))
+            R = X.rotation().matrix()
+            err = np.abs(np.r_[np.degrees(R @ d[:3]), 1e3 * (R @ d[3:])])
+            s = u.sigma_ee_frame[c]
+            sigma = np.array([s[k] for k in ("rx_deg", "ry_deg", "rz_deg", "x_mm", "y_mm", "z_mm")])
+            assert np.all(err <= 3 * sigma), (len(u.frames), c, err / sigma)
+    assert all(len(u.next_poses) > 0 for u in ups[:-1])
+    for c, X in session.sol.ee_T_cam.items():
+        assert np.all(np.abs(_z(X, ref.ee_T_cam[c], ref.covariance[c])) < 1e-6)
+
+
 def test_watch_takes_complete_frames_names_a_bad_row_and_resumes(simulated, tmp_path):
     """--watch: frames whose pose row and predictions are there are added in the file's order, a NaN
     row is named and skipped; a second session with --resume continues from live.jsonl."""

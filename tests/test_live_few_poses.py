@@ -6,6 +6,7 @@ result where solve on the same frames ends 0.9-1.6 mm from it (docs/live.md). Ea
 must be solve's result on the frames so far; one that moved less keeps its one step."""
 
 import dataclasses
+import json
 
 import gtsam
 import numpy as np
@@ -150,3 +151,30 @@ def test_an_update_whose_metric_scale_is_undetermined_is_refused_and_the_next_st
     up = session.add_frame(ds.frames[7])
     assert up.ee_T_cam, up.message
     assert _z_to_solve(session, ds, preds, 8) < 0.1  # cold: solve's schedule on the 8 frames
+
+
+def test_below_five_poses_the_sigma_is_unchecked_and_the_session_is_never_done(simulated, tmp_path):
+    """With 3 poses no pose can be left out to check the total sigma, with 4 only four can: on real
+    recordings the error was outside 3 sigma in 33-67 % and 11-43 % of such calibrations
+    (uncertainty.MIN_CHECKED_POSES). A target every update meets: the updates below 5 poses say the
+    sigma is within it but unchecked, and the first from 5 poses is done."""
+    from calib3r_graph.io.predictions import split_view_id
+    from calib3r_graph.solver.uncertainty import MIN_CHECKED_POSES
+
+    root = simulated(seed=5, frames=6, cameras=1, matches_per_pair=300)
+    session = LiveSession(root, predictions="sim", guide=False, target_mm=1e3, target_deg=90.0, out=tmp_path)
+    poses = []
+    for f in load_dataset(root).frames:
+        u = session.add_frame(f)
+        if not u.ee_T_cam:
+            continue
+        poses.append(len({split_view_id(v)[1] for v in session.sol.base_T_cam}))
+        if poses[-1] < MIN_CHECKED_POSES:
+            assert not u.done and not u.sigma_checked and "too few to check it" in u.message, u.message
+            assert "(unchecked)" in u.status_line()
+        else:
+            assert u.done and u.sigma_checked and "(unchecked)" not in u.status_line(), u.message
+            break
+    assert poses == [3, 4, 5], poses
+    lines = [json.loads(x) for x in (tmp_path / "live.jsonl").read_text().splitlines()]
+    assert [x["sigma_checked"] for x in lines if x["cameras"]] == [False, False, True]

@@ -6,7 +6,8 @@ from pathlib import Path
 from calib3r_graph.errors import InputError
 
 
-def _box(text):
+def parse_box(text):
+    """--box's (lo, hi) corners in the base frame (m), or None."""
     if not text:
         return None
     try:
@@ -56,7 +57,7 @@ def run_live(args, noise_from_args):
         info = json.loads(p.read_text()) if p.is_file() else {}
     opt = SolveOptions(noise=noise_from_args(args, info), progress=False)
     session = LiveSession(args.dataset, args.target_mm, args.target_deg, out=out, predictions=name, opt=opt,
-                          k_next=args.next, margin_m=args.margin_m, box=_box(args.box),
+                          k_next=args.next, margin_m=args.margin_m, box=parse_box(args.box),
                           pixel_from_predictions=args.pixel_sigma_px is None, next_pose_format=poses)
     source = f"predictions/{name}" if name else "the pairwise frontend on each new image"
     print(f"live: {ds.root} ({source}); target {args.target_mm} mm / {args.target_deg} deg; writing {out}",

@@ -30,10 +30,12 @@ import numpy as np
 from calib3r_graph.errors import Calib3rError, InputError
 from calib3r_graph.io.dataset import Dataset, load_dataset
 from calib3r_graph.io.output import atomic_write_json, atomic_write_text
+from calib3r_graph.io.predictions import split_view_id
 from calib3r_graph.io.results import calibration_json, covariance_in_ee_frame, sigma_ee_frame, uncertainty_report
 from calib3r_graph.live.engine import Engine
 from calib3r_graph.live.poses import open_tail, read_pose_rows, read_text
 from calib3r_graph.solver.solve import SolveOptions
+from calib3r_graph.solver.uncertainty import MIN_CHECKED_POSES
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +58,9 @@ class Update:
     next_kinds: list = field(default_factory=list)
     done: bool = False
     floor: bool = False  # the systematic floor alone is above the target: more poses will not help
+    # the total sigma is checked by a leave-one-pose-out (uncertainty.MIN_CHECKED_POSES poses or more);
+    # below, it is the model's, often too small on real arms, and the session is never "done"
+    sigma_checked: bool = False
     message: str = ""
     skipped: list = field(default_factory=list)  # (frame, reason)
     calibration: dict | None = field(default=None, repr=False)
@@ -75,6 +80,8 @@ class Update:
             T = np.asarray(self.next_poses[0])
             nxt = (f"  next ({self.next_kinds[0]}): xyz {T[0, 3]:.3f} {T[1, 3]:.3f} {T[2, 3]:.3f} m")
         sig = f"sigma {mm:.2f} mm {deg:.3f} deg" if np.isfinite(mm) else "sigma -"
+        if np.isfinite(mm) and not self.sigma_checked:
+            sig += " (unchecked)"
         state = "DONE" if self.done else ("FLOOR" if self.floor else "")
         skipped = "".join(f"  skipped {f}: {r}" for f, r in self.skipped)
         # the time the frame took to answer: its features and pairs, then the solver's update
@@ -90,7 +97,8 @@ class Update:
                                 "metric_scale": self.metric_scale[c][0], "metric_scale_sigma": self.metric_scale[c][1]}
                             for c in self.ee_T_cam},
                 "next_poses": self.next_poses, "next_kinds": self.next_kinds, "done": self.done,
-                "floor": self.floor, "message": self.message, "skipped": [list(s) for s in self.skipped]}
+                "floor": self.floor, "sigma_checked": self.sigma_checked, "message": self.message,
+                "skipped": [list(s) for s in self.skipped]}
 
 
 def session_dataset(dataset_dir, name_bad_rows: bool = False) -> Dataset:
@@ -317,7 +325,7 @@ class LiveSession:
         up = Update(self.step, list(self.base_T_ee), time.perf_counter() - t0, {}, skipped=skipped)
         if last is not None:
             for f in ("ee_T_cam", "sigma_ee_frame", "metric_scale", "next_poses", "next_kinds", "done", "floor",
-                      "calibration"):
+                      "sigma_checked", "calibration"):
                 setattr(up, f, getattr(last, f))
         up.message = "frame skipped"
         return up
@@ -353,10 +361,16 @@ class LiveSession:
                              for c, X in sol.ee_T_cam.items()}
         up.metric_scale = dict(sol.metric_scale)
         mm, deg = up.largest()
-        up.done = mm <= self.target[0] and deg <= self.target[1]
+        poses = len({split_view_id(v)[1] for v in sol.base_T_cam})
+        up.sigma_checked = poses >= MIN_CHECKED_POSES
+        within = mm <= self.target[0] and deg <= self.target[1]
+        up.done = within and up.sigma_checked
         up.floor = self._floor(sol)
         if up.done:
             up.message = f"done: largest sigma {mm:.2f} mm / {deg:.3f} deg within {self.target[0]} mm / {self.target[1]} deg"
+        elif within:
+            up.message = (f"the sigma is within the target, but {poses} robot poses are too few to check it: "
+                          f"add poses up to {MIN_CHECKED_POSES}")
         elif up.floor:
             up.message = ("more poses will not help: the robot's systematic error alone gives more than the target "
                           f"{self.target[0]} mm / {self.target[1]} deg")

@@ -225,11 +225,16 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
             D, U = _candidate_reduced(sol, fs, vals, offsets, k_new)
             S_uu, S_ou = S[np.ix_(U, U)], S[np.ix_(out_idx, U)]
             S_out = S_out - S_ou @ D @ np.linalg.solve(np.eye(len(U)) + S_uu @ D, S_ou.T)
-        gain_after = systematic_error_gain({**base_T_ee, "_candidate": E}, frames + ["_candidate"])[0]
-        factor = (gain_after / gain_before) ** 2 if np.isfinite(gain_before) and gain_before > 0 else 1.0
+        # A view that overlaps no solved view (a --candidates pose looking elsewhere) adds nothing the
+        # solve could use: neither its motion's rotations (the systematic gain) nor a jackknife sample.
+        factor = 1.0
+        jk_after = {c: np.asarray(r["covariance"]) for c, r in sol.stats.get("jackknife", {}).items()}
+        if best is not None:
+            gain_after = systematic_error_gain({**base_T_ee, "_candidate": E}, frames + ["_candidate"])[0]
+            factor = (gain_after / gain_before) ** 2 if np.isfinite(gain_before) and gain_before > 0 else 1.0
+            jk_after = _jackknife_after(sol, loo, D, U, len(frames))
         sys_after = {c: (sol.systematic[c].covariance * factor, sol.systematic[c].scale_sigma_rel * np.sqrt(factor))
                      for c in cameras if c in sol.systematic}
-        jk_after = _jackknife_after(sol, loo, D, U, len(frames))
         J, sig = _objective_after(sol, S_out, sys_after, jk_after, d_med, target_mm, target_deg)
         proposals.append(Proposal(E, kind, J, 0.0, sig, n_vis, frame))
         parts.append((fs, vals, S_out, jk_after))

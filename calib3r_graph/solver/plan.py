@@ -1,17 +1,14 @@
-"""Next best pose: rank candidate robot poses by how much recording them would shrink the
-calibration's uncertainty (expected information gain, at the current solution).
+"""What recording one more robot pose would add to the calibration's graph, for the guide that ranks
+candidate poses (solver/guidance.py: ``calib3r-graph live`` and ``calib3r-graph plan``).
 
-For each candidate flange pose E the current final graph is extended with what a new
+For a candidate flange pose E (:func:`candidate_factors`) the current final graph is extended with what a new
 recording would add: the reference camera's view at ``E * ee_T_cam`` with its robot pose
 factor, and a 3D match factor to the existing view that sees most of the same scene, among the
 views within the viewpoint change that the solution's own pairs span (:func:`matched_view_angle_deg`).
 That factor's matches are the existing view's matched points re-projected into the
 candidate (kept when in front of the camera and inside its image), whitened with the
-same calibrated noise as the real scene factors. The gain is
-
-    IG = 1/2 sum_j log( det Sigma_j(before) / det Sigma_j(after) )      (nats)
-
-over every camera's ee_T_cam marginal.
+same calibrated noise as the real scene factors. The guide scores that information's effect on the
+total covariance (guidance.score_candidates).
 """
 
 from dataclasses import dataclass
@@ -25,23 +22,6 @@ from calib3r_graph.solver.graph import point_sqrt_info
 from factors.hand_eye import robot_pose_noise_covariance
 
 MIN_VISIBLE = 30
-
-
-@dataclass
-class CandidateScore:
-    frame: str
-    information_gain_nats: float
-    sigma_t_mm_after: float  # largest translation sigma over cameras, ee frame
-    sigma_r_deg_after: float
-    overlapping_view: str | None
-    visible_points: int
-
-
-def largest_sigmas(covs) -> tuple[float, float]:
-    """Largest translation sigma (mm) and rotation sigma (deg) over ee_T_cam covariances."""
-    t = max(np.sqrt(np.linalg.eigvalsh(c[3:, 3:])[-1]) for c in covs) * 1e3
-    r = max(np.sqrt(np.linalg.eigvalsh(c[:3, :3])[-1]) for c in covs)
-    return float(t), float(np.degrees(r))
 
 
 def scene_points(sol, view):
@@ -206,30 +186,3 @@ def candidate_factors(sol, preds, noise, E: gtsam.Pose3, rng, max_points=2000, k
     out.append(factors.make_match3d_factor(factors.Match3DMeasurement(obs.pts_a, obs.pts_b, W),
                                            [keys.pose(best), k_pose, keys.scale(best), k_scale]))
     return out, values, best, n_vis
-
-
-def rank_candidates(ds, preds, sol, noise, candidates: dict, max_points=2000) -> list:
-    keys, cameras = sol.keys, list(sol.ee_T_cam)
-    # The same graph's marginals before and after: the noise model's covariance (the systematic
-    # part does not shrink with one more pose of the same arm).
-    before = [np.asarray(sol.covariance_model.get(c, sol.covariance[c])) for c in cameras]
-    logdet_before = sum(np.linalg.slogdet(c)[1] for c in before)
-    rng = np.random.default_rng(0)
-    axes = view_axes(sol)
-    max_angle = matched_view_angle_deg(sol, axes)
-    out = []
-    for frame, E in candidates.items():
-        graph = gtsam.NonlinearFactorGraph(sol.graph)
-        values = gtsam.Values(sol.values)
-        new_factors, new_values, best, n_vis = candidate_factors(sol, preds, noise, E, rng, max_points,
-                                                                 max_angle_deg=max_angle, axes=axes)
-        for f in new_factors:
-            graph.add(f)
-        values.insert(new_values)
-        marg = gtsam.Marginals(graph, values)
-        after = [marg.marginalCovariance(keys.hand_eye(c)) for c in cameras]
-        gain = 0.5 * (logdet_before - sum(np.linalg.slogdet(c)[1] for c in after))
-        t_mm, r_deg = largest_sigmas(after)
-        out.append(CandidateScore(frame, float(gain), t_mm, r_deg, best, n_vis))
-    return sorted(out, key=lambda c: -c.information_gain_nats)
-
