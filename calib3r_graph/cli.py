@@ -401,6 +401,16 @@ def cmd_live(args):
     run_live(args, _noise_from_args)
 
 
+def _add_guide_args(p):
+    """The guide's options, shared by live and plan (solver/guidance.py)."""
+    p.add_argument("--target-mm", type=float, default=1.0,
+                   help="target of the largest total sigma (live stops there; the guide's objective is scaled by it)")
+    p.add_argument("--target-deg", type=float, default=0.1, help="... and this")
+    p.add_argument("--next", type=int, default=5, help="how many next poses to propose (next_poses.csv)")
+    p.add_argument("--margin-m", type=float, default=0.05, help="grow the visited region by this for the proposals")
+    p.add_argument("--box", help="x0,y0,z0,x1,y1,z1: propose flange positions inside this box (base frame, m)")
+
+
 def _add_live_args(p):
     p.add_argument("dataset", help="dataset folder (calib3r-dataset/1): its cameras, and the frames as they come")
     mode = p.add_mutually_exclusive_group(required=True)
@@ -409,11 +419,7 @@ def _add_live_args(p):
     p.add_argument("--out", required=True, help="output folder: calibration.json, next_poses.csv, live.jsonl")
     p.add_argument("--seed", type=int, default=0, help="--replay random: the permutation's seed; --replay guided: above 0, "
                    "start from a seeded random frame instead of the first")
-    p.add_argument("--target-mm", type=float, default=1.0, help="stop when the largest total sigma is within this")
-    p.add_argument("--target-deg", type=float, default=0.1, help="... and this")
-    p.add_argument("--next", type=int, default=5, help="how many next poses to propose")
-    p.add_argument("--margin-m", type=float, default=0.05, help="grow the visited region by this for the proposals")
-    p.add_argument("--box", help="x0,y0,z0,x1,y1,z1: propose flange positions inside this box (base frame, m)")
+    _add_guide_args(p)
     p.add_argument("--predictions", help="use DATASET/predictions/NAME (default: the only one; none: the pairwise "
                                          "frontend on the images)")
     p.add_argument("--resume", action="store_true", help="--watch: continue a killed session from OUT/live.jsonl")
@@ -601,11 +607,7 @@ def build_parser():
     _add_solve_args(pl)
     pl.add_argument("--candidates", help="CSV like robot_poses.csv (frame,x,y,z,qx,qy,qz,qw): rank these "
                                          "(default: the live guide's candidates, generated from the solution)")
-    pl.add_argument("--target-mm", type=float, default=1.0, help="the target the ranking's objective is scaled by")
-    pl.add_argument("--target-deg", type=float, default=0.1, help="... and this")
-    pl.add_argument("--next", type=int, default=5, help="how many to print and write to next_poses.csv")
-    pl.add_argument("--margin-m", type=float, default=0.05, help="grow the visited region by this for the candidates")
-    pl.add_argument("--box", help="x0,y0,z0,x1,y1,z1: candidate flange positions inside this box (base frame, m)")
+    _add_guide_args(pl)
     pl.set_defaults(func=cmd_plan)
 
     pr = sub.add_parser("predict", help="make predictions/<name>/ from the dataset's images (and depth)")
