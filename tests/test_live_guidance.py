@@ -228,3 +228,42 @@ def test_scoring_with_the_updates_information_matrix_equals_scoring_with_its_inv
     assert [p.kind for p in given] == [p.kind for p in inverted]
     a, b = np.array([p.objective_after for p in given]), np.array([p.objective_after for p in inverted])
     assert np.allclose(a, b, rtol=1e-8) and len(set(np.round(a, 12))) > 1
+
+
+def test_the_guide_counts_the_poses_the_solution_uses(simulated):
+    """A frame whose views the solve left out adds no motion and no leave-one-out sample: the scores
+    are those without it. At 13 used poses the next solve (14) still has its jackknife (below 15);
+    with the unused frame counted as a 14th, the guide dropped the cover from every candidate's total
+    (tabb_ds1, whose frontend leaves views out: its predicted sigma was 0.31 of what solve then
+    reported at 15 frames, 0.98 since; bench/guide_prediction.py)."""
+    from calib3r_graph.io.dataset import subset_dataset
+    from calib3r_graph.io.predictions import load_predictions, subset_predictions
+    from calib3r_graph.solver.guidance import score_candidates
+    from calib3r_graph.solver.solve import SolveOptions, solve
+
+    root = simulated(seed=5, frames=16, cameras=1, matches_per_pair=200)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    used, rest = ds.frames[:13], ds.frames[13:]
+    sol = solve(subset_dataset(ds, used), subset_predictions(preds, used),
+                SolveOptions(progress=False, jackknife_method="linearised"))
+    assert sol.stats.get("jackknife")
+    sub_preds = subset_predictions(preds, used)
+    cands = [("recorded", ds.base_T_ee[rest[0]], rest[0])]
+    base = {f: ds.base_T_ee[f] for f in used}
+    alone = score_candidates(sol, sub_preds, sol_noise(sol), base, cands, 1.0, 0.1)[0]
+    # the 14th frame is in base_T_ee (the session has it) but none of its views is in the solution
+    unused = score_candidates(sol, sub_preds, sol_noise(sol), {**base, rest[1]: ds.base_T_ee[rest[1]]}, cands,
+                              1.0, 0.1)[0]
+    assert unused.objective_after == pytest.approx(alone.objective_after, rel=1e-12)
+    assert unused.sigma_after == alone.sigma_after
+
+
+def sol_noise(sol):
+    """The robot noise as the solve calibrated it (as `plan` and a live update hand the guide)."""
+    import dataclasses
+
+    from calib3r_graph.solver.graph import NoiseOptions
+
+    mm, deg = sol.stats["noise_calibration"]["robot_sigma_used"]
+    return dataclasses.replace(NoiseOptions(), robot_sigma_mm=mm, robot_sigma_deg=deg)

@@ -206,7 +206,9 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     out_idx = np.concatenate([np.arange(offsets[k][0], offsets[k][0] + offsets[k][1]) for k in out_keys])
     _, dist = scene_geometry(sol)
     d_med = float(np.median(dist))
-    frames = sorted(base_T_ee)
+    # the poses the solution uses: a frame whose views the solve left out adds no motion (the systematic
+    # gain) and no leave-one-out sample, and the next solve's jackknife counts the poses it uses
+    frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam} & set(base_T_ee))
     gain_before = systematic_error_gain(base_T_ee, frames)[0]
     rng = np.random.default_rng(seed)
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
