@@ -170,9 +170,11 @@ def cmd_plan(args):
     guide's objective, solver/guidance.py): the --candidates file's, or without it the guide's own."""
     from calib3r_graph.io.dataset import load_dataset, read_robot_poses, write_robot_poses
     from calib3r_graph.io.output import atomic_write_json
+    from calib3r_graph.io.predictions import split_view_id
     from calib3r_graph.io.results import uncertainty_report
     from calib3r_graph.live.cli import parse_box
     from calib3r_graph.solver.guidance import candidate_poses, score_candidates
+    from calib3r_graph.solver.uncertainty import MIN_CHECKED_POSES
 
     def largest(sigmas):  # {camera: sigma_ee_frame} -> the largest (mm, deg) over cameras and ee axes
         return (max(s[a] for s in sigmas.values() for a in ("x_mm", "y_mm", "z_mm")),
@@ -197,7 +199,9 @@ def cmd_plan(args):
         c.frame = c.frame or f"next{i:02d}"
     t_now, r_now = largest({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"]
                             for c, X in sol.ee_T_cam.items()})
-    print(f"now: largest total sigma {t_now:.3f} mm, {r_now:.4f} deg ({len(ds.base_T_ee)} poses; target "
+    poses = len({split_view_id(v)[1] for v in sol.base_T_cam})
+    unchecked = f", unchecked below {MIN_CHECKED_POSES} poses" if poses < MIN_CHECKED_POSES else ""
+    print(f"now: largest total sigma {t_now:.3f} mm, {r_now:.4f} deg ({poses} poses{unchecked}; target "
           f"{args.target_mm} mm, {args.target_deg} deg)")
     print(f"{'rank':>4} {'candidate':>10} {'kind':>8} {'sigma t after':>14} {'sigma r after':>14} {'points':>7}")
     rows = []

@@ -164,7 +164,8 @@ def test_plan_cli(tmp_path, capsys):
     p = np.array([T.translation() for T in poses.values()])
     for T in own.values():
         assert np.all(T.translation() >= p.min(0) - 0.05 - 1e-9) and np.all(T.translation() <= p.max(0) + 0.05 + 1e-9)
-    assert "next01" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "next01" in out and "(8 poses; target 1.0 mm" in out  # 8 poses: the sigma is checked
 
 
 def test_relative_rotations_equal_gtsam_logmap_up_to_a_half_turn():
