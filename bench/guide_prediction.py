@@ -41,18 +41,12 @@ from live_real import SHARED, prepare  # noqa: E402
 from calib3r_graph.errors import Calib3rError  # noqa: E402
 from calib3r_graph.io.dataset import load_dataset, subset_dataset  # noqa: E402
 from calib3r_graph.io.predictions import subset_predictions  # noqa: E402
-from calib3r_graph.io.results import uncertainty_report  # noqa: E402
+from calib3r_graph.io.results import largest_sigma, uncertainty_report  # noqa: E402
 from calib3r_graph.solver.graph import NoiseOptions  # noqa: E402
 from calib3r_graph.solver.guidance import objective, scene_geometry, score_candidates  # noqa: E402
 from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
 
 TARGET = (1.0, 0.1)  # mm, deg: the live default, which scales the objective's axes
-
-
-def largest(sigmas: dict) -> tuple[float, float]:
-    """{camera: sigma_ee_frame} -> the largest (mm, deg) over cameras and ee axes."""
-    return (max(s[a] for s in sigmas.values() for a in ("x_mm", "y_mm", "z_mm")),
-            max(s[a] for s in sigmas.values() for a in ("rx_deg", "ry_deg", "rz_deg")))
 
 
 def solved(ds, preds, frames, opt):
@@ -76,7 +70,7 @@ def one_point(ds, preds, opt, frames, rest) -> dict | None:
                               [("recorded", ds.base_T_ee[f], f) for f in rest], *TARGET)
     score_s = time.perf_counter() - t
     d_med = float(np.median(scene_geometry(sol)[1]))
-    now = largest({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"] for c, X in sol.ee_T_cam.items()})
+    now = largest_sigma({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"] for c, X in sol.ee_T_cam.items()})
     rows = []
     for rank, p in enumerate(ranked, 1):
         after = solved(ds, preds, frames + [p.frame], opt)
@@ -86,7 +80,7 @@ def one_point(ds, preds, opt, frames, rest) -> dict | None:
         J = objective(after.covariance, after.ee_T_cam, {c: after.metric_scale[c][1] / abs(after.metric_scale[c][0])
                                                          for c in after.ee_T_cam}, d_med, *TARGET)
         rows.append({"frame": p.frame, "rank": rank, "predicted_objective": p.objective_after, "solved_objective": J,
-                     "predicted_mm_deg": list(largest(p.sigma_after)), "solved_mm_deg": list(largest(sig)),
+                     "predicted_mm_deg": list(largest_sigma(p.sigma_after)), "solved_mm_deg": list(largest_sigma(sig)),
                      "visible_points": p.visible_points})
     return {"frames": list(frames), "now_mm_deg": list(now), "score_s": score_s, "candidates": rows}
 

@@ -53,7 +53,7 @@ from _workdirs import add_work_args, work_dirs  # noqa: E402  (bench/, the scrip
 from calib3r_graph.geometry import pose_error  # noqa: E402
 from calib3r_graph.io.dataset import load_dataset  # noqa: E402
 from calib3r_graph.io.predictions import load_predictions  # noqa: E402
-from calib3r_graph.io.results import covariance_in_ee_frame, uncertainty_report  # noqa: E402
+from calib3r_graph.io.results import covariance_in_ee_frame, largest_sigma, uncertainty_report  # noqa: E402
 from calib3r_graph.live.run import replay  # noqa: E402
 from calib3r_graph.live.session import LiveSession  # noqa: E402
 from calib3r_graph.solver import jackknife as jk  # noqa: E402
@@ -581,8 +581,7 @@ def main():
                       f"{max((abs(v) for c in r['final_z'].values() for v in c), default=float('nan')):.3f}",
                       flush=True)
         full = {c: uncertainty_report(X, ref.covariance[c])["sigma_ee_frame"] for c, X in ref.ee_T_cam.items()}
-        full_sigma = [max(s[a] for s in full.values() for a in ("x_mm", "y_mm", "z_mm")),
-                      max(s[a] for s in full.values() for a in ("rx_deg", "ry_deg", "rz_deg"))]
+        full_sigma = list(largest_sigma(full))
         rec = {"full_sigma_mm_deg": full_sigma, "feature_extraction_s": feature_extraction_s(ds_dir),
                "batch_solve_s": batch_s, "batch_solve_cpu_s": batch_cpu_s, "frames": len(load_dataset(ds_dir).frames),
                "summary": summarise(runs, batch_s, batch_cpu_s, full_sigma),

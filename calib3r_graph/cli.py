@@ -170,15 +170,10 @@ def cmd_plan(args):
     guide's objective, solver/guidance.py): the --candidates file's, or without it the guide's own."""
     from calib3r_graph.io.dataset import load_dataset, read_robot_poses, write_robot_poses
     from calib3r_graph.io.output import atomic_write_json
-    from calib3r_graph.io.predictions import split_view_id
-    from calib3r_graph.io.results import uncertainty_report
+    from calib3r_graph.io.results import largest_sigma, uncertainty_report
     from calib3r_graph.live.cli import parse_box
     from calib3r_graph.solver.guidance import candidate_poses, score_candidates
     from calib3r_graph.solver.uncertainty import MIN_CHECKED_POSES
-
-    def largest(sigmas):  # {camera: sigma_ee_frame} -> the largest (mm, deg) over cameras and ee axes
-        return (max(s[a] for s in sigmas.values() for a in ("x_mm", "y_mm", "z_mm")),
-                max(s[a] for s in sigmas.values() for a in ("rx_deg", "ry_deg", "rz_deg")))
 
     unit = load_dataset(args.dataset, skip_missing=args.skip_missing).robot_unit
     box = parse_box(args.box)
@@ -197,16 +192,16 @@ def cmd_plan(args):
     ranked = score_candidates(sol, preds, noise, ds.base_T_ee, cands, args.target_mm, args.target_deg)
     for i, c in enumerate(ranked, 1):  # the guide's own: next01, next02, ... best first, as `live` names them
         c.frame = c.frame or f"next{i:02d}"
-    t_now, r_now = largest({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"]
+    t_now, r_now = largest_sigma({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"]
                             for c, X in sol.ee_T_cam.items()})
-    poses = len({split_view_id(v)[1] for v in sol.base_T_cam})
+    poses = len(sol.frames)
     unchecked = f", unchecked below {MIN_CHECKED_POSES} poses" if poses < MIN_CHECKED_POSES else ""
     print(f"now: largest total sigma {t_now:.3f} mm, {r_now:.4f} deg ({poses} poses{unchecked}; target "
           f"{args.target_mm} mm, {args.target_deg} deg)")
     print(f"{'rank':>4} {'candidate':>10} {'kind':>8} {'sigma t after':>14} {'sigma r after':>14} {'points':>7}")
     rows = []
     for i, c in enumerate(ranked, 1):
-        t_mm, r_deg = largest(c.sigma_after)
+        t_mm, r_deg = largest_sigma(c.sigma_after)
         if i <= args.next:
             print(f"{i:4d} {c.frame:>10} {c.kind:>8} {t_mm:11.3f} mm {r_deg:10.4f} deg {c.visible_points:7d}")
         rows.append({"frame": c.frame, "kind": c.kind, "base_T_ee": c.base_T_ee.matrix().tolist(),

@@ -32,6 +32,12 @@ def sigma_ee_frame(sig: np.ndarray) -> dict:
             "y_mm": float(sig[4] * 1e3), "z_mm": float(sig[5] * 1e3)}
 
 
+def largest_sigma(sigmas: dict) -> tuple[float, float]:
+    """{camera: sigma_ee_frame} -> the largest (mm, deg) over cameras and ee axes."""
+    return (max(s[a] for s in sigmas.values() for a in ("x_mm", "y_mm", "z_mm")),
+            max(s[a] for s in sigmas.values() for a in ("rx_deg", "ry_deg", "rz_deg")))
+
+
 def tangent_in_ee_frame(R_ee_cam, xi) -> dict:
     """A tangent step [w, v] of ee_T_cam (body frame; rad, m) rotated into the ee frame, signed, in
     degrees and mm (the keys of sigma_ee_frame)."""

@@ -30,8 +30,8 @@ import numpy as np
 from calib3r_graph.errors import Calib3rError, InputError
 from calib3r_graph.io.dataset import Dataset, load_dataset
 from calib3r_graph.io.output import atomic_write_json, atomic_write_text
-from calib3r_graph.io.predictions import split_view_id
-from calib3r_graph.io.results import calibration_json, covariance_in_ee_frame, sigma_ee_frame, uncertainty_report
+from calib3r_graph.io.results import (calibration_json, covariance_in_ee_frame, largest_sigma, sigma_ee_frame,
+                                      uncertainty_report)
 from calib3r_graph.live.engine import Engine
 from calib3r_graph.live.poses import open_tail, read_pose_rows, read_text
 from calib3r_graph.solver.solve import SolveOptions
@@ -69,9 +69,7 @@ class Update:
         """Largest total sigma over cameras and axes: (mm, deg); inf before the first solve."""
         if not self.sigma_ee_frame:
             return float("inf"), float("inf")
-        mm = max(s[a] for s in self.sigma_ee_frame.values() for a in ("x_mm", "y_mm", "z_mm"))
-        deg = max(s[a] for s in self.sigma_ee_frame.values() for a in ("rx_deg", "ry_deg", "rz_deg"))
-        return mm, deg
+        return largest_sigma(self.sigma_ee_frame)
 
     def status_line(self) -> str:
         mm, deg = self.largest()
@@ -361,7 +359,7 @@ class LiveSession:
                              for c, X in sol.ee_T_cam.items()}
         up.metric_scale = dict(sol.metric_scale)
         mm, deg = up.largest()
-        poses = len({split_view_id(v)[1] for v in sol.base_T_cam})
+        poses = len(sol.frames)
         up.sigma_checked = poses >= MIN_CHECKED_POSES
         within = mm <= self.target[0] and deg <= self.target[1]
         up.done = within and up.sigma_checked
@@ -409,9 +407,8 @@ class LiveSession:
             if s is None or not s.measured:
                 continue
             C = covariance_in_ee_frame(X, s.covariance) / gain**2
-            sig = sigma_ee_frame(np.sqrt(np.maximum(np.diag(C), 0)))
-            if max(sig[a] for a in ("x_mm", "y_mm", "z_mm")) > self.target[0] or \
-                    max(sig[a] for a in ("rx_deg", "ry_deg", "rz_deg")) > self.target[1]:
+            mm, deg = largest_sigma({c: sigma_ee_frame(np.sqrt(np.maximum(np.diag(C), 0)))})
+            if mm > self.target[0] or deg > self.target[1]:
                 return True
         return False
 

@@ -208,7 +208,7 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
     d_med = float(np.median(dist))
     # the poses the solution uses: a frame whose views the solve left out adds no motion (the systematic
     # gain) and no leave-one-out sample, and the next solve's jackknife counts the poses it uses
-    frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam} & set(base_T_ee))
+    frames = [f for f in sol.frames if f in base_T_ee]
     gain_before = systematic_error_gain(base_T_ee, frames)[0]
     rng = np.random.default_rng(seed)
     k_new = (gtsam.symbol("n", 0), gtsam.symbol("m", 0))
@@ -229,9 +229,10 @@ def score_candidates(sol, preds, noise, base_T_ee: dict, candidates: list, targe
             S_out = S_out - S_ou @ D @ np.linalg.solve(np.eye(len(U)) + S_uu @ D, S_ou.T)
         # A view that overlaps no solved view (a --candidates pose looking elsewhere) adds nothing the
         # solve could use: neither its motion's rotations (the systematic gain) nor a jackknife sample.
-        factor = 1.0
-        jk_after = {c: np.asarray(r["covariance"]) for c, r in sol.stats.get("jackknife", {}).items()}
-        if best is not None:
+        if best is None:
+            factor = 1.0
+            jk_after = {c: np.asarray(r["covariance"]) for c, r in sol.stats.get("jackknife", {}).items()}
+        else:
             gain_after = systematic_error_gain({**base_T_ee, "_candidate": E}, frames + ["_candidate"])[0]
             factor = (gain_after / gain_before) ** 2 if np.isfinite(gain_before) and gain_before > 0 else 1.0
             jk_after = _jackknife_after(sol, loo, D, U, len(frames))

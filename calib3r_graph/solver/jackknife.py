@@ -76,7 +76,7 @@ def jackknife(ds, preds, opt, sol, solve_fn, progress=True) -> tuple[dict, dict 
         raise ValueError(f"jackknife method: '{method}' is not linearised or resolve")
     if method == "linearised" and sol.graph is not None:
         return linearised_jackknife(sol)
-    frames = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
+    frames = sol.frames
     opt = dataclasses.replace(opt, progress=False, jackknife="never")
     package_log = logging.getLogger("calib3r_graph")
     level = package_log.level

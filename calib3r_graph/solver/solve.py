@@ -83,6 +83,11 @@ class Solution:
     systematic: dict = field(default_factory=dict)  # camera -> systematic.SystematicError
     camera_model: dict = field(default_factory=dict)  # camera -> camera_model.CameraModelError
 
+    @property
+    def frames(self) -> list:
+        """The robot poses (frame ids, sorted) whose views the solution holds."""
+        return sorted({split_view_id(v)[1] for v in self.base_T_cam})
+
 
 def levenberg_marquardt(graph, values, max_iterations, label, progress=True):
     params = gtsam.LevenbergMarquardtParams()
