@@ -178,3 +178,60 @@ def test_below_five_poses_the_sigma_is_unchecked_and_the_session_is_never_done(s
     assert poses == [3, 4, 5], poses
     lines = [json.loads(x) for x in (tmp_path / "live.jsonl").read_text().splitlines()]
     assert [x["sigma_checked"] for x in lines if x["cameras"]] == [False, False, True]
+
+
+def _replay_with_a_lost_warm_update(simulated, monkeypatch, at=8):
+    """(rows (frames, |z| to solve, the engine's cold restarts, message) per update, session) of a
+    9-frame simulated replay in which the warm path of the update at ``at`` frames lands in a wrong
+    minimum: every step it takes returns ee_T_cam 30 mm and 3 degrees off (fault injection; the cold
+    path and every other update are the engine's own)."""
+    from calib3r_graph.live.engine import Engine
+
+    wrong = gtsam.Pose3(gtsam.Rot3.Rz(np.radians(3.0)), np.array([0.03, 0.0, 0.0]))
+    update, last_step = Engine._update, Engine._last_step
+
+    def _update(self, base_T_ee, preds):
+        self.inject = self.state is not None and len(base_T_ee) == at
+        return update(self, base_T_ee, preds)
+
+    def _last_step(self, ctx, values, weights, calib, history):
+        values, system, graph = last_step(self, ctx, values, weights, calib, history)
+        if self.inject:
+            values = gtsam.Values(values)
+            k = ctx.keys.hand_eye("cam0")
+            values.update(k, values.atPose3(k).compose(wrong))
+        return values, system, graph
+
+    monkeypatch.setattr(Engine, "_update", _update)
+    monkeypatch.setattr(Engine, "_last_step", _last_step)
+    root = simulated(seed=5, frames=9, cameras=1, matches_per_pair=300)
+    ds = load_dataset(root)
+    preds = load_predictions(root, "sim", ds.cameras, set(ds.frames))
+    session = LiveSession(root, predictions="sim", guide=False)
+    rows = []
+    for n, f in enumerate(ds.frames, 1):
+        up = session.add_frame(f)
+        if up.ee_T_cam:
+            rows.append((n, _z_to_solve(session, ds, preds, n), session.engine.cold_restarts, up.message))
+    return rows
+
+
+def test_a_warm_update_that_lost_the_robot_is_solved_again_from_scratch(simulated, monkeypatch):
+    """A warm update whose robot fit grows by more than LOST_ROBOT_F (live/engine.py) is solved again
+    from scratch, and the cold result is taken: the injected wrong minimum at 8 frames is replaced by
+    solve's result on those frames, the message says so, and no other update restarts. Without the
+    guard the same update stays in the wrong minimum (tens of sigma from solve)."""
+    from calib3r_graph.live import engine as live_engine
+
+    rows = _replay_with_a_lost_warm_update(simulated, monkeypatch)
+    at8 = next(r for r in rows if r[0] == 8)
+    assert at8[2] == 1 and "solved again from scratch" in at8[3], rows
+    assert at8[1] < 0.5 and max(z for _, z, _, _ in rows) < 1.0, rows
+    assert [r[2] for r in rows if r[0] < 8] == [0] * len([r for r in rows if r[0] < 8]), rows
+
+    monkeypatch.undo()  # (the same injection again, not wrapped twice)
+    monkeypatch.setattr(live_engine, "LOST_ROBOT_F", 0.0)
+    rows = _replay_with_a_lost_warm_update(simulated, monkeypatch)
+    at8 = next(r for r in rows if r[0] == 8)
+    assert at8[2] == 0 and at8[1] > 10, rows
+

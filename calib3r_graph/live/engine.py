@@ -58,6 +58,7 @@ leave-one-pose-out jackknife.
 """
 
 import dataclasses
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -72,6 +73,8 @@ from calib3r_graph.solver.init import initialise, pairwise_sim3
 from calib3r_graph.solver.jackknife import JACKKNIFE_BELOW
 from calib3r_graph.solver.observations import build_observations
 from calib3r_graph.solver.solve import MIN_ROBOT_POSES, Solution, SolveOptions
+
+log = logging.getLogger(__name__)
 
 
 # A total sigma beyond these is no calibration yet (a flange camera's mount offset is about 0.1 m; a
@@ -117,6 +120,15 @@ FEW_MOVE_SIGMAS = 1.0
 # cover and median counts. Below it the weights move with the estimate: without the rule the
 # few-pose re-runs rose from 6 to 10 on rwhe_kuka_1 (session 22).
 KEEP_WEIGHTS_FROM = JACKKNIFE_BELOW
+# A warm update whose robot fit grew by more than this F, the chi2 per new robot-residual dimension over
+# the arm's variance the previous update measured (at least nominal; robot_fit_jump), is solved again from
+# scratch (Engine._solve_again_cold): a warm path in a wrong minimum, where the scene agrees with itself and
+# the robot no longer does. F = 100 is a 10-sigma residual, a gross error rather than the arm's noise.
+# Measured over the 3,585 warm updates of 128 live replays (docs/live-notes.md, "A guard on the warm path"):
+# F at most 19 where the update was sound (rwhe_kuka_1, whose robot has a systematic error; 4.8 on the
+# simulator), 460 where rwhe_kuka_2's random order 19 lost the robot at 4 frames (142 mm from the full
+# result, a robot variance factor of 656; from scratch 6 mm and 1.2).
+LOST_ROBOT_F = 100.0
 
 
 @dataclass
@@ -148,13 +160,21 @@ class Engine:
         self.extra_steps = 0  # one-step updates given a re-weighted second step (EXTRA_STEP_SIGMAS)
         self.far_moves = 0  # one-step updates re-run with solve's schedule (_moved_far)
         self.few_reruns = 0  # one-step updates below JACKKNIFE_BELOW poses re-run (FEW_MOVE_SIGMAS)
+        self.cold_restarts = 0  # warm updates that lost the robot, solved again from scratch (LOST_ROBOT_F)
+        self.started_cold, self.note = False, ""  # the last update's start, and what it did that a user should know
 
     # ------------------------------------------------------------------ one update
     def update(self, base_T_ee: dict, preds) -> Solution:
         """Solve with the frames of ``base_T_ee`` and their predictions, warm from the last update.
-        A SolveError (not observable yet) leaves no state behind: the next update starts cold."""
+        A SolveError (not observable yet) leaves no state behind: the next update starts cold. A warm
+        update that lost the robot (LOST_ROBOT_F) is solved again from scratch; ``note`` says so."""
+        before = self.state.calibration.robot_fit if self.state is not None else None
+        self.note = ""
         try:
             sol = self._update(base_T_ee, preds)
+            jump = 0.0 if self.started_cold else robot_fit_jump(before, self.state.calibration.robot_fit)
+            if LOST_ROBOT_F and jump > LOST_ROBOT_F:
+                sol = self._solve_again_cold(base_T_ee, preds, sol, jump)
             self._last_cov = {c: np.asarray(C) for c, C in sol.covariance.items()}
             require_calibration(sol)
         except SolveError:
@@ -175,6 +195,7 @@ class Engine:
         timings["observations"] = time.perf_counter() - t
         t = time.perf_counter()
         cold = self.state is None or not set(self.state.ee_T_cam) >= {split_view_id(v)[0] for v in preds.views}
+        self.started_cold = cold
         if cold:
             _require_two_axes(base_T_ee, frames)
             state, inliers = self._cold(base_T_ee, preds, observations)
@@ -258,7 +279,8 @@ class Engine:
         # of the pairs whose views did not move is this solution, so its warm_weights reuse them)
         t = time.perf_counter()
         new_weights = ctx.irls_weights(values, conf)
-        next_calib = ctx.calibrate(values, new_weights) if self.opt.noise_calibration else Calibration()
+        next_calib = (ctx.calibrate(values, new_weights) if self.opt.noise_calibration
+                      else Calibration(robot_fit=ctx.robot_fit(values)))
         live = {(o.view_a, o.view_b) for o in ctx.observations}
         for cache in (self._terms, self._covariances, self._kept, self._whitening):
             for k in [k for k in cache if k not in live]:
@@ -272,6 +294,30 @@ class Engine:
                           for v in views}
         self._depth_of = {v: preds.views[v].depth for v in views}
         return sol
+
+    def _solve_again_cold(self, base_T_ee, preds, warm, F) -> Solution:
+        """The update solved again from scratch (solve's initialisation and schedule), taken where its
+        robot chi2 is below the warm result's ``warm``; else the warm result, and the engine as it left it.
+        Where the frames solved from scratch are no calibration yet (SolveError, require_calibration),
+        neither is the warm result that the robot rejects: the SolveError is raised."""
+        kept = (self.state, self.depth_ref, self._depth_of, self.last_noise, self.last_information)
+        warm_chi2 = self.state.calibration.robot_fit[0]
+        why = f"the warm update's new robot residual was {F:.0f}x the arm's variance"
+        self.state = None
+        self.cold_restarts += 1
+        try:
+            sol = self._update(base_T_ee, preds)
+            require_calibration(sol)
+        except SolveError as e:
+            raise SolveError(f"{e}; solved again from scratch, as {why}") from None
+        if self.state.calibration.robot_fit[0] < warm_chi2:
+            self.note = (f"solved again from scratch: {why} (robot chi2 {warm_chi2:.3g} warm, "
+                         f"{self.state.calibration.robot_fit[0]:.3g} from scratch)")
+            log.info("%s", self.note)  # (the status line says it)
+            return sol
+        self.state, self.depth_ref, self._depth_of, self.last_noise, self.last_information = kept
+        self.started_cold = False
+        return warm
 
     def _schedule(self, ctx, values, conf, sims, history, weights=None, first=None):
         """solve's rounds from the warm placement, one Gauss-Newton step a round: the old pairs'
@@ -355,6 +401,7 @@ class Engine:
         sigma after six), so a warm path lands elsewhere on that path (0.48 sigma measured)."""
         from calib3r_graph.solver.solve import solve
 
+        self.note = ""
         sol = solve(dataclasses.replace(self.ds, base_T_ee=dict(base_T_ee)), preds, self.opt)
         views = sorted(sol.base_T_cam)
         self.state = State({v: sol.base_T_cam[v] for v in views}, dict(sol.depth_scale), dict(sol.depth_correction),
@@ -433,6 +480,17 @@ def require_calibration(sol):
         if not (lam > 0 and sig_lam < MAX_SCALE_REL * lam):
             raise SolveError(f"{c}: the metric scale is not observable from these frames yet ({lam:.3g} ± "
                              f"{sig_lam:.2g} m per depth unit)")
+
+
+def robot_fit_jump(before, after) -> float:
+    """How much worse the robot fits after an update than before: the growth of the robot chi2 per new
+    residual dimension over the arm's variance measured before (chi2 per dof, at least the nominal 1),
+    ``F = ((chi2_1 - chi2_0) / (dof_1 - dof_0)) / max(1, chi2_0 / dof_0)``; about 1 where the new poses
+    agree with the rest. ``before``, ``after``: (chi2, dof) under the nominal robot noise, or None (0)."""
+    if before is None or after is None or after[1] <= before[1] or before[1] < 1:
+        return 0.0
+    (c0, d0), (c1, d1) = before, after
+    return float(((c1 - c0) / (d1 - d0)) / max(1.0, c0 / d0))
 
 
 def _calibration_of(sol) -> tuple:

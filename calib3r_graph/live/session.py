@@ -387,6 +387,8 @@ class LiveSession:
                 log.info("no guidance this update: %s", e)
         up.guidance_s = time.perf_counter() - tg
         up.calibration = calibration_json(sol, preds.name)
+        if self.engine.note:  # e.g. a warm update solved again from scratch (engine.LOST_ROBOT_F)
+            up.message = "; ".join(m for m in (up.message, self.engine.note) if m)
         up.latency_s, up.cpu_s = time.perf_counter() - t1, time.process_time() - c1
         return up
 

@@ -410,11 +410,17 @@ class UpdateContext:
         grid = {v: self.preds.views[v].depth.shape[::-1] for v in self.views}
         residuals, whitening, white = self.whitened(values)
         sigma0_sq, kappa = noise_calibration(self.observations, residuals, whitening, weights, grid, whitened=white)
-        chi2, n_frames = robot_chi2(self.keys, self.views, self.base_T_ee, values, self.opt.noise)
-        robot_factor = max(1.0, chi2 / max(6 * n_frames - 13, 1))
+        chi2, dof = self.robot_fit(values)
+        robot_factor = max(1.0, chi2 / max(dof, 1))
         if not np.isfinite(robot_factor):
             robot_factor = 1.0
-        return Calibration(sigma0_sq, kappa, robot_factor, (float(chi2), 6 * n_frames - 13))
+        return Calibration(sigma0_sq, kappa, robot_factor, (chi2, dof))
+
+    def robot_fit(self, values) -> tuple[float, int]:
+        """(chi2, dof) of the robot poses at ``values`` under the nominal robot noise: the redundancy
+        is 6 per frame less ee_T_cam and the world's similarity (13)."""
+        chi2, n_frames = robot_chi2(self.keys, self.views, self.base_T_ee, values, self.opt.noise)
+        return float(chi2), 6 * n_frames - 13
 
     def solution(self, graph, values, calib, history, timings, system=None) -> Solution:
         """``graph``: the graph, or what :meth:`deferred_graph` keeps to build it; ``system``: (H,
