@@ -151,7 +151,8 @@ def run_order(ds_dir, pname, cache, ref, order, seed, fixed=None):
         for c, X in session.sol.ee_T_cam.items():
             final[c] = ee_z(X, ref.ee_T_cam[c], ref.covariance[c]).tolist()
     return {"order": order, "seed": seed, "steps": steps, "wall_s": wall, "final_z": final,
-            "frames_order": list(session.base_T_ee)}  # arrival order
+            "frames_order": list(session.base_T_ee),  # arrival order
+            "cold_restarts": session.engine.cold_restarts}  # warm updates solved again from scratch (engine)
 
 
 class LinearModel:

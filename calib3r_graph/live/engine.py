@@ -127,7 +127,9 @@ KEEP_WEIGHTS_FROM = JACKKNIFE_BELOW
 # Measured over the 3,585 warm updates of 128 live replays (docs/live-notes.md, "A guard on the warm path"):
 # F at most 19 where the update was sound (rwhe_kuka_1, whose robot has a systematic error; 4.8 on the
 # simulator), 460 where rwhe_kuka_2's random order 19 lost the robot at 4 frames (142 mm from the full
-# result, a robot variance factor of 656; from scratch 6 mm and 1.2).
+# result, a robot variance factor of 656; from scratch 6 mm and 1.2). So is a warm update whose last step
+# failed and whose LM then stayed at its start (Engine.stuck): its result is no solution (rwhe_kuka_2's
+# random order 36 at 5 frames, F = 36, 36 mm off under a 17 mm sigma; once in 1,545 updates).
 LOST_ROBOT_F = 100.0
 
 
@@ -162,19 +164,24 @@ class Engine:
         self.few_reruns = 0  # one-step updates below JACKKNIFE_BELOW poses re-run (FEW_MOVE_SIGMAS)
         self.cold_restarts = 0  # warm updates that lost the robot, solved again from scratch (LOST_ROBOT_F)
         self.started_cold, self.note = False, ""  # the last update's start, and what it did that a user should know
+        self.stuck = False  # the last step of the last update: LM that made no iteration (Engine._last_step)
 
     # ------------------------------------------------------------------ one update
     def update(self, base_T_ee: dict, preds) -> Solution:
         """Solve with the frames of ``base_T_ee`` and their predictions, warm from the last update.
         A SolveError (not observable yet) leaves no state behind: the next update starts cold. A warm
-        update that lost the robot (LOST_ROBOT_F) is solved again from scratch; ``note`` says so."""
+        update that lost the robot (LOST_ROBOT_F) or could not move from its start (``stuck``) is solved
+        again from scratch; ``note`` says so."""
         before = self.state.calibration.robot_fit if self.state is not None else None
         self.note = ""
         try:
             sol = self._update(base_T_ee, preds)
             jump = 0.0 if self.started_cold else robot_fit_jump(before, self.state.calibration.robot_fit)
             if LOST_ROBOT_F and jump > LOST_ROBOT_F:
-                sol = self._solve_again_cold(base_T_ee, preds, sol, jump)
+                sol = self._solve_again_cold(base_T_ee, preds, sol,
+                                             f"the warm update's new robot residual was {jump:.0f}x the arm's variance")
+            elif not self.started_cold and self.stuck:
+                sol = self._solve_again_cold(base_T_ee, preds, sol, "the warm update could not move from its start")
             self._last_cov = {c: np.asarray(C) for c, C in sol.covariance.items()}
             require_calibration(sol)
         except SolveError:
@@ -295,14 +302,13 @@ class Engine:
         self._depth_of = {v: preds.views[v].depth for v in views}
         return sol
 
-    def _solve_again_cold(self, base_T_ee, preds, warm, F) -> Solution:
+    def _solve_again_cold(self, base_T_ee, preds, warm, why) -> Solution:
         """The update solved again from scratch (solve's initialisation and schedule), taken where its
         robot chi2 is below the warm result's ``warm``; else the warm result, and the engine as it left it.
         Where the frames solved from scratch are no calibration yet (SolveError, require_calibration),
         neither is the warm result that the robot rejects: the SolveError is raised."""
         kept = (self.state, self.depth_ref, self._depth_of, self.last_noise, self.last_information)
         warm_chi2 = self.state.calibration.robot_fit[0]
-        why = f"the warm update's new robot residual was {F:.0f}x the arm's variance"
         self.state = None
         self.cold_restarts += 1
         try:
@@ -344,7 +350,10 @@ class Engine:
         graph = ctx.deferred_graph(values, weights, calib)  # (before the step: the whitening cached is at values)
         stepped = ctx.gauss_newton(values, history, weights, calib)
         if stepped is None:
-            return ctx.lm(values, weights, calib, history), None, None
+            values = ctx.lm(values, weights, calib, history)
+            self.stuck = history[-1]["iterations"] == 0  # (the last step's: an earlier one's was replaced)
+            return values, None, None
+        self.stuck = False
         return stepped[0], stepped[1], graph
 
     def _move(self, state, values, keys) -> float:
