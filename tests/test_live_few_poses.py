@@ -187,7 +187,7 @@ def test_below_five_poses_the_sigma_is_unchecked_and_the_session_is_never_done(s
 
 
 def _replay_with_a_lost_warm_update(simulated, monkeypatch, at=8):
-    """(rows (frames, |z| to solve, the engine's cold restarts, message) per update, session) of a
+    """(frames, |z| to solve, the engine's cold restarts, message) of each update of a
     9-frame simulated replay in which the warm path of the update at ``at`` frames lands in a wrong
     minimum: every step it takes returns ee_T_cam 30 mm and 3 degrees off (fault injection; the cold
     path and every other update are the engine's own)."""

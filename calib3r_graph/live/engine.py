@@ -124,7 +124,7 @@ KEEP_WEIGHTS_FROM = JACKKNIFE_BELOW
 # the arm's variance the previous update measured (at least nominal; robot_fit_jump), is solved again from
 # scratch (Engine._solve_again_cold): a warm path in a wrong minimum, where the scene agrees with itself and
 # the robot no longer does. F = 100 is a 10-sigma residual, a gross error rather than the arm's noise.
-# Measured over the 3,585 warm updates of 128 live replays (docs/live-notes.md, "A guard on the warm path"):
+# Measured over the 3,585 warm updates of 128 live replays (docs/live-notes.md, "A guard on the warm path, and LM that gave up"):
 # F at most 19 where the update was sound (rwhe_kuka_1, whose robot has a systematic error; 4.8 on the
 # simulator), 460 where rwhe_kuka_2's random order 19 lost the robot at 4 frames (142 mm from the full
 # result, a robot variance factor of 656; from scratch 6 mm and 1.2). So is a warm update whose last step
@@ -164,7 +164,7 @@ class Engine:
         self.extra_steps = 0  # one-step updates given a re-weighted second step (EXTRA_STEP_SIGMAS)
         self.far_moves = 0  # one-step updates re-run with solve's schedule (_moved_far)
         self.few_reruns = 0  # one-step updates below JACKKNIFE_BELOW poses re-run (FEW_MOVE_SIGMAS)
-        self.cold_restarts = 0  # warm updates that lost the robot, solved again from scratch (LOST_ROBOT_F)
+        self.cold_restarts = 0  # warm updates solved again from scratch (LOST_ROBOT_F, stuck)
         self.started_cold, self.note = False, ""  # the last update's start, and what it did that a user should know
         self.stuck = False  # the last step of the last update: LM that made no iteration (Engine._last_step)
 

@@ -94,7 +94,7 @@ class Solution:
 # pose factor alone is 1 / (0.2 mm)^2 = 2.5e7 per m^2), so at 1e5 the damped step is still the full
 # Gauss-Newton step, and a start where that step overshoots was returned unmoved: a live update on
 # rwhe_kuka_2 (random order 36, 5 frames) reported its warm start, 36 mm off, as its result
-# (docs/live-notes.md, "A guard on the warm path"). Up to 1e12 the step can shrink to the gradient's
+# (docs/live-notes.md, "A guard on the warm path, and LM that gave up"). Up to 1e12 the step can shrink to the gradient's
 # direction. The batch solves of the four recordings never reach 1e5: bit-identical results.
 LM_LAMBDA_UPPER = 1e12
 

@@ -29,8 +29,8 @@ from calib3r_graph.io.predictions import split_view_id
 # error field needs 8. Measured (bench/views_real.py --views 3,4,5 --repeats 20,
 # bench/results/views_real_3to5.md): the share of seeded subsets whose error to the full recording's
 # result is within 3 total sigma on every ee axis was 33 %, 67 % and 50 % at 3 poses on rwhe_kuka_1,
-# rwhe_kuka_2 and tabb_ds1; 75 %, 89 %, 89 % at 4; 89 %, 100 %, 100 % at 5 (95 % on rwhe_kuka_2 with
-# GTSAM's LM damping bound, solve.LM_LAMBDA_UPPER). The live replays
+# rwhe_kuka_2 and tabb_ds1; 75 %, 89 %, 89 % at 4; 89 %, 100 %, 100 % at 5 (95 % on rwhe_kuka_2 under
+# GTSAM's default LM damping bound, before solve.LM_LAMBDA_UPPER). The live replays
 # (bench/live_real.py) gave the same picture per update: 48-58 % at 3 poses, 57-87 % at 4, 88-100 %
 # from 5. So below it the summary says the sigma is unchecked, and `live` never says "done".
 MIN_CHECKED_POSES = 5
