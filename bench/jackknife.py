@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from _workdirs import add_work_args, work_dirs  # noqa: E402  (bench/, the script's own folder)
 from calib3r_graph.io.dataset import load_dataset, subset_dataset  # noqa: E402
-from calib3r_graph.io.predictions import load_predictions, split_view_id, subset_predictions  # noqa: E402
+from calib3r_graph.io.predictions import load_predictions, subset_predictions  # noqa: E402
 from calib3r_graph.solver import jackknife as jk  # noqa: E402
 from calib3r_graph.solver.graph import NoiseOptions  # noqa: E402
 from calib3r_graph.solver.solve import SolveOptions, solve  # noqa: E402
@@ -95,7 +95,7 @@ def compare(ds, preds, frames, irls_rounds):
     shifts_lin, _, _ = jk.linearised_leave_one_out(sol.graph, sol.values, sol.keys, list(sol.base_T_cam))
     # the re-solving one, with its leave-one-out solutions kept for the side-by-side shifts (in one
     # process, so that its time is the work's, as the linearised one's)
-    used = sorted({split_view_id(v)[1] for v in sol.base_T_cam})
+    used = sol.frames
     t = time.perf_counter()
     logging.getLogger("calib3r_graph").setLevel(logging.ERROR)
     solves = jk.leave_one_out_solves(sub, sp, dataclasses.replace(opt, jackknife="never", jobs=1), used, solve, False)

@@ -295,10 +295,8 @@ def _greedy(ref, base_T_ee: dict, score, desc: str, progress: bool) -> tuple[lis
     the frame whose flange rotation differs most from those used."""
     from tqdm import tqdm
 
-    from calib3r_graph.io.predictions import split_view_id
-
     model = LinearModel(ref)
-    solved = {split_view_id(v)[1] for v in ref.base_T_cam}
+    solved = set(ref.frames)
     frames = [f for f in base_T_ee if f in solved]
     order, scores = [frames[0]], [float("inf")]
     cur = model.state(set(order))

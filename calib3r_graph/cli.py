@@ -193,7 +193,7 @@ def cmd_plan(args):
     for i, c in enumerate(ranked, 1):  # the guide's own: next01, next02, ... best first, as `live` names them
         c.frame = c.frame or f"next{i:02d}"
     t_now, r_now = largest_sigma({c: uncertainty_report(X, sol.covariance[c])["sigma_ee_frame"]
-                            for c, X in sol.ee_T_cam.items()})
+                                  for c, X in sol.ee_T_cam.items()})
     poses = len(sol.frames)
     unchecked = f", unchecked below {MIN_CHECKED_POSES} poses" if poses < MIN_CHECKED_POSES else ""
     print(f"now: largest total sigma {t_now:.3f} mm, {r_now:.4f} deg ({poses} poses{unchecked}; target "

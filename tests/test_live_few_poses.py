@@ -186,6 +186,11 @@ def test_below_five_poses_the_sigma_is_unchecked_and_the_session_is_never_done(s
     assert [x["sigma_checked"] for x in lines if x["cameras"]] == [False, False, True]
 
 
+def _restart_row(n, session, up, z, _) -> tuple:
+    """(frames, |z| to solve, the engine's cold restarts so far, the update's message)."""
+    return n, z, session.engine.cold_restarts, up.message
+
+
 def _replay_with_a_lost_warm_update(simulated, monkeypatch, at=8):
     """(frames, |z| to solve, the engine's cold restarts, message) of each update of a
     9-frame simulated replay in which the warm path of the update at ``at`` frames lands in a wrong
@@ -210,7 +215,7 @@ def _replay_with_a_lost_warm_update(simulated, monkeypatch, at=8):
 
     monkeypatch.setattr(Engine, "_update", _update)
     monkeypatch.setattr(Engine, "_last_step", _last_step)
-    return _nine_frame_replay(simulated, lambda n, session, up, z, _: (n, z, session.engine.cold_restarts, up.message))
+    return _nine_frame_replay(simulated, _restart_row)
 
 
 def test_a_warm_update_that_lost_the_robot_is_solved_again_from_scratch(simulated, monkeypatch):
@@ -265,7 +270,7 @@ def test_a_warm_update_that_could_not_move_is_solved_again_from_scratch(simulate
     monkeypatch.setattr(Engine, "_update", _update)
     monkeypatch.setattr(UpdateContext, "gauss_newton", _gauss_newton)
     monkeypatch.setattr(UpdateContext, "lm", _lm)
-    rows = _nine_frame_replay(simulated, lambda n, session, up, z, _: (n, z, session.engine.cold_restarts, up.message))
+    rows = _nine_frame_replay(simulated, _restart_row)
     assert [(n, c) for n, _, c, _ in rows] == [(5, 0), (6, 0), (7, 0), (8, 1), (9, 1)], rows
     at8 = rows[3]
     assert "could not move from its start" in at8[3] and at8[1] < 0.1, rows
